@@ -1,0 +1,245 @@
+"""iSAM2 factor graph over keyframe poses X(k) and landmarks L(j): the back end's public core.
+
+This is the part another pipeline can drive directly, with no front end::
+
+    from backend import FactorGraphBackend, BackendParams, StereoCalibration
+    graph = FactorGraphBackend(BackendParams(), StereoCalibration(fx, fy, cx, cy, baseline))
+    graph.add_keyframe(0, T_wc0)                       # the first keyframe gets a prior
+    graph.add_keyframe(1, T_wc1_guess)
+    graph.add_landmark(7, xyz_guess)
+    graph.add_observation(0, 7, uv=(u, v), depth=z)    # RGB-D: a virtual stereo factor
+    graph.add_observation(1, 7, uv=(u, v))             # no depth: a plain projection factor
+    handle = graph.add_relative_pose(0, 1, T_01, sigma_t=0.05, sigma_r_deg=2.0, kernel="cauchy")
+    graph.update()
+    T_wc1 = graph.keyframe_pose(1); ids, xyz = graph.landmark_positions()
+    graph.remove_factors([handle]); graph.update()
+
+Poses are 4x4 camera-to-world matrices (OpenCV camera axes). Factors and new variables wait in a
+pending graph until ``update()``, which runs one iSAM2 update plus ``extra_updates`` more (iSAM2
+needs them to converge after relinearisation, see docs/engineering notes).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Optional
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+
+class BackendError(RuntimeError):
+    """The graph cannot accept a request (unknown variable, singular system, ...)."""
+
+
+@dataclass(frozen=True)
+class StereoCalibration:
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline: float
+
+
+@dataclass
+class BackendParams:
+    relinearize_threshold: float = 0.01
+    relinearize_skip: int = 1
+    extra_updates: int = 1
+    pixel_sigma: float = 1.0
+    depth_noise_coeff: float = 0.0015
+    huber_k: float = 2.8
+    max_dynamic_inflation: float = 100.0
+    prior_sigma: float = 1e-4
+
+    @classmethod
+    def from_config(cls, cfg) -> "BackendParams":
+        return cls(cfg.relinearize_threshold, cfg.relinearize_skip, cfg.extra_updates, cfg.pixel_sigma,
+                   cfg.depth_noise_coeff, cfg.huber_k, cfg.max_dynamic_inflation)
+
+
+def pose3(T: np.ndarray) -> gtsam.Pose3:
+    return gtsam.Pose3(np.asarray(T, dtype=float))
+
+
+class FactorGraphBackend:
+    def __init__(self, params: BackendParams, calibration: StereoCalibration):
+        self.params = params
+        self.calibration = calibration
+        c = calibration
+        self._K_stereo = gtsam.Cal3_S2Stereo(c.fx, c.fy, 0.0, c.cx, c.cy, c.baseline)
+        self._K_mono = gtsam.Cal3_S2(c.fx, c.fy, 0.0, c.cx, c.cy)
+        isam_params = gtsam.ISAM2Params()
+        isam_params.setRelinearizeThreshold(params.relinearize_threshold)
+        isam_params.relinearizeSkip = params.relinearize_skip
+        self._isam = gtsam.ISAM2(isam_params)
+        self._pending_graph = gtsam.NonlinearFactorGraph()
+        self._pending_values = gtsam.Values()
+        self._pending_handles: list[int] = []
+        self._factor_index: dict[int, int] = {}     # handle -> iSAM2 factor index
+        self._next_handle = 0
+        self._keyframes: set[int] = set()
+        self._landmarks: set[int] = set()
+        self._estimate: Optional[gtsam.Values] = None
+        self._noise_cache: dict[tuple, gtsam.noiseModel.Base] = {}
+
+    # --- variables ------------------------------------------------------------------------------
+    def add_keyframe(self, kf_id: int, T_wc_guess: np.ndarray) -> None:
+        """New pose variable; the very first one is anchored by a tight prior (gauge freedom)."""
+        if kf_id in self._keyframes:
+            raise BackendError(f"keyframe {kf_id} already exists")
+        self._pending_values.insert(X(kf_id), pose3(T_wc_guess))
+        if not self._keyframes:
+            noise = gtsam.noiseModel.Isotropic.Sigma(6, self.params.prior_sigma)
+            self._add_factor(gtsam.PriorFactorPose3(X(kf_id), pose3(T_wc_guess), noise))
+        self._keyframes.add(kf_id)
+
+    def add_landmark(self, lm_id: int, xyz_guess: np.ndarray) -> None:
+        if lm_id in self._landmarks:
+            raise BackendError(f"landmark {lm_id} already exists")
+        self._pending_values.insert(L(lm_id), gtsam.Point3(*np.asarray(xyz_guess, float)))
+        self._landmarks.add(lm_id)
+
+    def has_keyframe(self, kf_id: int) -> bool:
+        return kf_id in self._keyframes
+
+    def has_landmark(self, lm_id: int) -> bool:
+        return lm_id in self._landmarks
+
+    # --- factors --------------------------------------------------------------------------------
+    def add_observation(self, kf_id: int, lm_id: int, uv, depth: float = 0.0, level_scale: float = 1.0,
+                        dynamic_prob: float = 0.0) -> int:
+        """An observation of landmark ``lm_id`` at undistorted pixel ``uv`` from keyframe ``kf_id``.
+
+        With a valid depth it is a virtual stereo factor (u_R = u - fx*b/z) whose noise couples u_R
+        to u and adds the depth noise; without, a projection factor. ``level_scale`` (the pyramid
+        scale of the keypoint) and ``dynamic_prob`` inflate the noise. Returns a factor handle.
+        """
+        self._require(kf_id, lm_id)
+        inflation = self._dynamic_inflation(dynamic_prob)
+        sigma_px = self.params.pixel_sigma * level_scale * inflation
+        u, v = float(uv[0]), float(uv[1])
+        if depth > 0:
+            noise = self._stereo_noise(round(sigma_px, 3), round(inflation, 3))
+            disparity = self.calibration.fx * self.calibration.baseline / depth
+            measurement = gtsam.StereoPoint2(u, u - disparity, v)
+            factor = gtsam.GenericStereoFactor3D(measurement, noise, X(kf_id), L(lm_id), self._K_stereo)
+        else:
+            noise = self._mono_noise(round(sigma_px, 3))
+            factor = gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(u, v), noise, X(kf_id), L(lm_id),
+                                                          self._K_mono)
+        return self._add_factor(factor)
+
+    def add_relative_pose(self, kf_a: int, kf_b: int, T_ab: np.ndarray, sigma_t: float, sigma_r_deg: float,
+                          kernel: Optional[str] = "huber", kernel_k: float = 1.0) -> int:
+        """Constraint that pose b seen from pose a is T_ab (= T_wa^-1 T_wb), e.g. odometry or a loop.
+
+        ``kernel`` is "huber", "cauchy" or None; a Cauchy kernel lets a wrong loop fade out.
+        """
+        self._require(kf_a)
+        self._require(kf_b)
+        sigmas = np.r_[np.full(3, np.radians(sigma_r_deg)), np.full(3, sigma_t)]
+        noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+        if kernel == "huber":
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(kernel_k), noise)
+        elif kernel == "cauchy":
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(kernel_k), noise)
+        elif kernel is not None:
+            raise BackendError(f"unknown kernel '{kernel}' (use 'huber', 'cauchy' or None)")
+        return self._add_factor(gtsam.BetweenFactorPose3(X(kf_a), X(kf_b), pose3(T_ab), noise))
+
+    def remove_factors(self, handles: Iterable[int]) -> None:
+        """Remove factors added earlier (by their handles) in one iSAM2 update."""
+        indices = [self._factor_index.pop(h) for h in handles if h in self._factor_index]
+        if indices:
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), indices)
+            self._settle()
+
+    # --- solving --------------------------------------------------------------------------------
+    def update(self, extra_updates: Optional[int] = None) -> None:
+        graph, values, handles = self._pending_graph, self._pending_values, self._pending_handles
+        self._pending_graph, self._pending_values, self._pending_handles = \
+            gtsam.NonlinearFactorGraph(), gtsam.Values(), []
+        result = self._run_update(graph, values, [])
+        for handle, index in zip(handles, result.getNewFactorsIndices()):
+            self._factor_index[handle] = index
+        self._settle(extra_updates)
+
+    def _settle(self, extra_updates: Optional[int] = None) -> None:
+        n = self.params.extra_updates if extra_updates is None else extra_updates
+        for _ in range(n):
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [])
+        self._estimate = self._isam.calculateEstimate()
+
+    def _run_update(self, graph, values, remove: list[int]):
+        try:
+            return self._isam.update(graph, values, remove)
+        except RuntimeError as exc:
+            raise BackendError(f"iSAM2 update failed: {exc}") from exc
+
+    # --- estimates ------------------------------------------------------------------------------
+    def keyframe_pose(self, kf_id: int) -> np.ndarray:
+        if self._estimate is None or not self._estimate.exists(X(kf_id)):
+            raise BackendError(f"keyframe {kf_id} has no estimate yet (call update())")
+        return self._estimate.atPose3(X(kf_id)).matrix()
+
+    def keyframe_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids (K,), poses (K,4,4)) of every optimised keyframe, sorted by id."""
+        ids = np.array(sorted(k for k in self._keyframes if self._estimated(X(k))), dtype=np.int64)
+        flat = gtsam.utilities.extractPose3(self._estimate) if self._estimate is not None else np.zeros((0, 12))
+        poses = np.tile(np.eye(4), (len(flat), 1, 1))
+        poses[:, :3, :3] = flat[:, :9].reshape(-1, 3, 3)
+        poses[:, :3, 3] = flat[:, 9:]
+        return ids, poses
+
+    def landmark_positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids (M,), positions (M,3)) of every optimised landmark, sorted by id."""
+        ids = np.array(sorted(j for j in self._landmarks if self._estimated(L(j))), dtype=np.int64)
+        xyz = gtsam.utilities.extractPoint3(self._estimate) if self._estimate is not None else np.zeros((0, 3))
+        return ids, np.asarray(xyz).reshape(-1, 3)
+
+    @property
+    def num_factors(self) -> int:
+        return len(self._factor_index)
+
+    # --- helpers --------------------------------------------------------------------------------
+    def _estimated(self, key: int) -> bool:
+        return self._estimate is not None and self._estimate.exists(key)
+
+    def _require(self, kf_id: int, lm_id: Optional[int] = None) -> None:
+        if kf_id not in self._keyframes:
+            raise BackendError(f"unknown keyframe {kf_id}: add_keyframe() it first")
+        if lm_id is not None and lm_id not in self._landmarks:
+            raise BackendError(f"unknown landmark {lm_id}: add_landmark() it first")
+
+    def _add_factor(self, factor) -> int:
+        self._pending_graph.add(factor)
+        handle = self._next_handle
+        self._next_handle += 1
+        self._pending_handles.append(handle)
+        return handle
+
+    def _dynamic_inflation(self, p: float) -> float:
+        p = min(max(float(p), 0.0), 1.0)
+        return min(1.0 / max(1.0 - p, 1e-6), np.sqrt(self.params.max_dynamic_inflation))
+
+    def _stereo_noise(self, sigma_px: float, inflation: float):
+        key = ("stereo", sigma_px, inflation)
+        if key not in self._noise_cache:
+            # u_R = u_L - d shares u_L's pixel noise; the disparity adds the sensor's depth noise,
+            # sigma_d = fx*b*sigma_z/z^2 with sigma_z = c*z^2, which makes it depth-independent.
+            sigma_d = self.calibration.fx * self.calibration.baseline * self.params.depth_noise_coeff * inflation
+            s2 = sigma_px**2
+            cov = np.array([[s2, s2, 0.0], [s2, s2 + sigma_d**2, 0.0], [0.0, 0.0, s2]])
+            base = gtsam.noiseModel.Gaussian.Covariance(cov)
+            huber = gtsam.noiseModel.mEstimator.Huber.Create(self.params.huber_k)
+            self._noise_cache[key] = gtsam.noiseModel.Robust.Create(huber, base)
+        return self._noise_cache[key]
+
+    def _mono_noise(self, sigma_px: float):
+        key = ("mono", sigma_px)
+        if key not in self._noise_cache:
+            base = gtsam.noiseModel.Isotropic.Sigma(2, sigma_px)
+            huber = gtsam.noiseModel.mEstimator.Huber.Create(np.sqrt(5.991))
+            self._noise_cache[key] = gtsam.noiseModel.Robust.Create(huber, base)
+        return self._noise_cache[key]

@@ -1,0 +1,167 @@
+"""Local mapping on the iSAM2 graph: keyframe insertion, landmark creation and culling.
+
+Replaces ORB-SLAM2's LocalMapping thread with one synchronous call per keyframe:
+1. the keyframe becomes a pose variable, tied to the previous keyframe by a loose odometry factor so
+   the system stays well-posed whatever the landmarks do;
+2. each tracked landmark gains an observation; landmarks seen by a second keyframe are promoted
+   into the graph with all their observations (virtual stereo factors, Huber, depth-aware noise,
+   noise inflated by the feature's dynamic probability);
+3. new anchored landmarks are created from the keyframe's unmatched close depth features;
+4. iSAM2 updates, estimates flow back into the map;
+5. landmarks that are rarely found when visible, never re-observed, or persistently dynamic are culled.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from backend.graph import BackendParams, FactorGraphBackend, StereoCalibration
+from backend.map_store import SlamMap
+from slam.camera import PinholeCamera
+from slam.config import BackendConfig, KeyframeConfig
+from slam.frame import FeatureFrame, MapPoints
+from slam.geometry import invert
+
+
+@dataclass
+class KeyframeInsertion:
+    kf_id: int
+    new_landmarks: int
+    promoted_landmarks: int
+    culled_landmarks: int
+
+
+class LocalMapper:
+    def __init__(self, cfg: BackendConfig, kf_cfg: KeyframeConfig, camera: PinholeCamera,
+                 dynamic_threshold: float = 0.5):
+        self.cfg = cfg
+        self.kf_cfg = kf_cfg
+        self.camera = camera
+        self.dynamic_threshold = dynamic_threshold
+        self.map = SlamMap()
+        calibration = StereoCalibration(camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline)
+        self.graph = FactorGraphBackend(BackendParams.from_config(cfg), calibration)
+
+    def insert_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, landmark_of_keypoint: np.ndarray) -> KeyframeInsertion:
+        lm_of_kp = landmark_of_keypoint.copy()
+        kf_id = self.map.add_keyframe(frame, T_wc, lm_of_kp)
+        self.graph.add_keyframe(kf_id, T_wc)
+        if kf_id > 0:
+            T_prev = self.map.kf_T_wc[kf_id - 1]
+            self.graph.add_relative_pose(kf_id - 1, kf_id, invert(T_prev) @ T_wc, self.cfg.odometry_sigma_t,
+                                         self.cfg.odometry_sigma_r_deg, kernel="huber")
+        promoted = self._add_observations(kf_id, frame, lm_of_kp)
+        created = self._create_landmarks(kf_id, frame, T_wc, lm_of_kp)
+        self.map.keyframes[kf_id].landmark_of_keypoint = lm_of_kp
+        self.map.update_covisibility(kf_id)
+        self.graph.update()
+        self._pull_estimates()
+        culled = self._cull_landmarks(kf_id)
+        return KeyframeInsertion(kf_id, created, promoted, culled)
+
+    def record_tracking(self, visible_ids: np.ndarray, found_ids: np.ndarray) -> None:
+        """Frame statistics for culling: landmarks in view, and landmarks matched as inliers."""
+        lm = self.map.landmarks
+        np.add.at(lm.visible, visible_ids[(visible_ids >= 0) & (visible_ids < len(lm))], 1)
+        np.add.at(lm.found, found_ids[(found_ids >= 0) & (found_ids < len(lm))], 1)
+
+    # --- observations and promotion ----------------------------------------------------------------
+    def _add_observations(self, kf_id: int, frame: FeatureFrame, lm_of_kp: np.ndarray) -> int:
+        kp = np.flatnonzero(lm_of_kp >= 0)
+        lm_ids = lm_of_kp[kp]
+        lm = self.map.landmarks
+        ok = ~lm.bad[lm_ids]
+        kp, lm_ids = kp[ok], lm_ids[ok]
+        lm_of_kp[np.flatnonzero(lm_of_kp >= 0)[~ok]] = -1
+        rows = self._record_observations(kf_id, frame, kp, lm_ids)
+        in_graph = lm.in_graph[lm_ids]
+        self._add_factors(rows[in_graph])
+        to_promote = lm_ids[~in_graph]
+        for lm_id in to_promote:
+            self.graph.add_landmark(int(lm_id), lm.xyz[lm_id])
+        lm.in_graph[to_promote] = True
+        obs = self.map.observations
+        self._add_factors(np.flatnonzero(np.isin(obs.lm, to_promote) & ~obs.in_graph))
+        return len(to_promote)
+
+    def _record_observations(self, kf_id: int, frame: FeatureFrame, kp: np.ndarray, lm_ids: np.ndarray) -> np.ndarray:
+        depth = np.where(frame.has_depth[kp], frame.depths[kp], 0.0)
+        rows = self.map.observations.append(
+            kf=np.full(len(kp), kf_id), lm=lm_ids, kp=kp, uv=frame.uv[kp], depth=depth,
+            level_scale=frame.level_scale[kp], dynamic_prob=frame.dynamic_prob[kp], in_graph=np.zeros(len(kp), bool))
+        lm = self.map.landmarks
+        np.add.at(lm.n_obs, lm_ids, 1)
+        np.add.at(lm.dynamic_sum, lm_ids, frame.dynamic_prob[kp])
+        return rows
+
+    def _add_factors(self, rows: np.ndarray) -> None:
+        obs = self.map.observations
+        for r in rows:
+            self.graph.add_observation(int(obs.kf[r]), int(obs.lm[r]), obs.uv[r], float(obs.depth[r]),
+                                       float(obs.level_scale[r]), float(obs.dynamic_prob[r]))
+        obs.in_graph[rows] = True
+
+    # --- creation ----------------------------------------------------------------------------------
+    def _create_landmarks(self, kf_id: int, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray) -> int:
+        """New anchored landmarks from unmatched static features with depth, closest first."""
+        candidates = np.flatnonzero((lm_of_kp < 0) & frame.has_depth & (frame.dynamic_prob < self.dynamic_threshold))
+        candidates = candidates[np.argsort(frame.depths[candidates], kind="stable")]
+        close = frame.depths[candidates] < self.camera.close_depth
+        n_take = max(int(close.sum()), min(self.kf_cfg.min_new_landmarks, len(candidates)))
+        kp = candidates[: min(n_take, self.kf_cfg.max_new_landmarks)]
+        if len(kp) == 0:
+            return 0
+        local = self.camera.backproject(frame.uv[kp], frame.depths[kp])
+        n = len(kp)
+        ids = self.map.landmarks.append(
+            xyz=local @ T_wc[:3, :3].T + T_wc[:3, 3], local_xyz=local, descriptors=frame.descriptors[kp],
+            octave=frame.octaves[kp], anchor_kf=np.full(n, kf_id), n_obs=np.zeros(n, np.int32),
+            visible=np.ones(n, np.int32), found=np.ones(n, np.int32), dynamic_sum=np.zeros(n),
+            bad=np.zeros(n, bool), in_graph=np.zeros(n, bool))
+        lm_of_kp[kp] = ids
+        self._record_observations(kf_id, frame, kp, ids)
+        return n
+
+    # --- estimates and culling ---------------------------------------------------------------------
+    def _pull_estimates(self) -> None:
+        kf_ids, poses = self.graph.keyframe_poses()
+        self.map.kf_T_wc[kf_ids] = poses
+        lm_ids, xyz = self.graph.landmark_positions()
+        self.map.landmarks.xyz[lm_ids] = xyz
+        self.map.refresh_anchored()
+
+    def _cull_landmarks(self, kf_id: int) -> int:
+        """ORB-SLAM's MapPointCulling, plus removal of landmarks whose evidence is mostly dynamic."""
+        lm = self.map.landmarks
+        cfg = self.cfg
+        alive = ~lm.bad
+        rarely_found = lm.found < cfg.cull_found_ratio * lm.visible
+        age = kf_id - lm.anchor_kf
+        unconfirmed = (age >= cfg.cull_after_keyframes) & (lm.n_obs < cfg.cull_min_observations)
+        mean_dynamic = lm.dynamic_sum / np.maximum(lm.n_obs, 1)
+        dynamic = mean_dynamic >= cfg.dynamic_removal_threshold
+        cull = alive & (rarely_found | unconfirmed | dynamic)
+        lm.bad[cull] = True
+        return int(cull.sum())
+
+    # --- queries for tracking ----------------------------------------------------------------------
+    def local_points(self, seed_landmarks: np.ndarray, n_keyframes: int = 20, n_covisible: int = 10) -> MapPoints:
+        """Landmarks of the keyframes that see the seeds, widened by their covisible keyframes."""
+        if self.map.num_keyframes == 0:
+            return MapPoints.empty()
+        local_kfs = self.local_keyframes(seed_landmarks, n_keyframes, n_covisible)
+        return self.map.map_points(self.map.landmarks_of_keyframes(local_kfs))
+
+    def local_keyframes(self, seed_landmarks: np.ndarray, n_keyframes: int, n_covisible: int) -> np.ndarray:
+        kfs, _ = self.map.keyframes_observing(seed_landmarks) if len(seed_landmarks) else (np.zeros(0, int), None)
+        if len(kfs) == 0:
+            kfs = np.arange(self.map.num_keyframes)[::-1]
+        kfs = kfs[:n_keyframes]
+        neighbours = [self.map.covisible_keyframes(k, self.cfg.covisibility_min_shared, n_covisible) for k in kfs[:3]]
+        return np.unique(np.concatenate([kfs] + neighbours))
+
+    def reference_keyframe(self, landmark_ids: np.ndarray) -> int:
+        """The keyframe sharing most of the given landmarks (the latest one if none)."""
+        kfs, _ = self.map.keyframes_observing(landmark_ids)
+        return int(kfs[0]) if len(kfs) else self.map.num_keyframes - 1

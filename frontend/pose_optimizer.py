@@ -1,0 +1,92 @@
+"""Pose-only optimisation of one frame against fixed 3-D points (ORB-SLAM's PoseOptimization).
+
+Gauss-Newton on SE(3) with a Huber kernel, run in rounds: after each round every observation is
+classified by its chi-square (7.815 for 3-DOF stereo, 5.991 for 2-DOF mono) and outliers are left
+out of the next round, but re-tested, so a point wrongly rejected early can come back. The robust
+kernel is dropped in the last rounds, as ORB-SLAM does, once outliers are gone.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.geometry import se3_exp
+
+
+@dataclass
+class PoseObservations:
+    points_w: np.ndarray    # (N,3) world points
+    uv: np.ndarray          # (N,2) observed undistorted pixels
+    u_right: np.ndarray     # (N,) virtual stereo u, NaN for mono observations
+    information: np.ndarray  # (N,) scalar information (1/sigma^2), already weighted
+
+
+@dataclass
+class PoseResult:
+    T_cw: np.ndarray
+    inliers: np.ndarray     # (N,) bool
+    chi2: np.ndarray        # (N,)
+
+
+def _residuals_and_jacobians(T_cw, obs: PoseObservations, fx, fy, cx, cy, bf):
+    """Residuals e = z - h(T X) (N,3) and Jacobians of h wrt a left twist (N,3,6)."""
+    pc = obs.points_w @ T_cw[:3, :3].T + T_cw[:3, 3]
+    x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-6)
+    iz = 1.0 / z
+    u = fx * x * iz + cx
+    v = fy * y * iz + cy
+    ur = u - bf * iz
+    stereo = np.isfinite(obs.u_right)
+    e = np.stack([obs.uv[:, 0] - u, obs.uv[:, 1] - v, np.where(stereo, obs.u_right - ur, 0.0)], axis=1)
+    dproj = np.zeros((len(pc), 3, 3))
+    dproj[:, 0, 0] = fx * iz
+    dproj[:, 0, 2] = -fx * x * iz**2
+    dproj[:, 1, 1] = fy * iz
+    dproj[:, 1, 2] = -fy * y * iz**2
+    dproj[:, 2, 0] = fx * iz
+    dproj[:, 2, 2] = -(fx * x - bf) * iz**2
+    dproj[~stereo, 2, :] = 0.0
+    # d(pc)/d(xi) for T <- exp(xi) T with xi = (omega, v): [-[pc]x | I].
+    dpc = np.zeros((len(pc), 3, 6))
+    dpc[:, 0, 1], dpc[:, 0, 2] = pc[:, 2], -pc[:, 1]
+    dpc[:, 1, 0], dpc[:, 1, 2] = -pc[:, 2], pc[:, 0]
+    dpc[:, 2, 0], dpc[:, 2, 1] = pc[:, 1], -pc[:, 0]
+    dpc[:, :, 3:] = np.eye(3)
+    return e, dproj @ dpc, stereo, pc[:, 2]
+
+
+def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: int = 10, rounds: int = 4,
+                  chi2_mono: float = 5.991, chi2_stereo: float = 7.815) -> PoseResult:
+    """Refine T_cw; returns the pose, the inlier mask and each observation's final chi-square."""
+    fx, fy, cx, cy, bf = camera.fx, camera.fy, camera.cx, camera.cy, camera.bf
+    n = len(obs.points_w)
+    active = np.ones(n, bool)
+    T = T_cw.copy()
+    chi2 = np.zeros(n)
+    threshold = np.where(np.isfinite(obs.u_right), chi2_stereo, chi2_mono)
+    for round_idx in range(rounds):
+        robust = round_idx < 2
+        for _ in range(iterations):
+            e, J, _, _ = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
+            chi2 = obs.information * np.einsum("ij,ij->i", e, e)
+            w = obs.information * active
+            if robust:
+                delta = np.sqrt(threshold)
+                r = np.sqrt(chi2)
+                w = w * np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
+            H = np.einsum("n,nki,nkj->ij", w, J, J)
+            b = np.einsum("n,nki,nk->i", w, J, e)
+            try:
+                step = np.linalg.solve(H + 1e-9 * np.eye(6), b)
+            except np.linalg.LinAlgError:
+                break
+            T = se3_exp(step) @ T
+            if np.linalg.norm(step) < 1e-8:
+                break
+        e, _, _, depth = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
+        chi2 = obs.information * np.einsum("ij,ij->i", e, e)
+        active = (chi2 <= threshold) & (depth > 0)
+        if active.sum() < 10:
+            break
+    return PoseResult(T, active, chi2)

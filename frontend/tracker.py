@@ -1,0 +1,217 @@
+"""Frame-to-map tracking: motion model, reference fallback, local map, and an honest LOST state.
+
+Per frame (ORB-SLAM's Track() split into short steps):
+1. predict the pose with the constant-velocity model and match the last frame's points by
+   projection (its landmarks plus temporary points back-projected from its depth);
+2. if that fails, match the local map by descriptor alone and solve PnP-RANSAC with depth;
+3. refine against the local map (covisible keyframes' landmarks) by projection;
+4. report LOST when too few landmark inliers remain, rather than inventing a pose.
+Features whose dynamic probability reaches the threshold never take part; the others are weighted
+by (1 - p) in the pose optimisation.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Optional, Protocol
+
+import cv2
+import numpy as np
+
+from frontend.matching import match_brute_force, search_by_projection
+from frontend.pose_optimizer import PoseObservations, optimize_pose
+from slam.camera import PinholeCamera
+from slam.config import TrackingConfig
+from slam.frame import FeatureFrame, MapPoints
+from slam.geometry import invert
+
+
+class TrackingState(Enum):
+    NOT_INITIALIZED = "not_initialized"
+    OK = "ok"
+    LOST = "lost"
+
+
+class LocalMapSource(Protocol):
+    """What the tracker needs from the map, provided by the orchestration (the tracker never sees
+    the back end itself)."""
+
+    def local_points(self, seed_landmarks: np.ndarray) -> MapPoints:
+        """Landmarks of the keyframes that observe ``seed_landmarks`` and of their covisible ones."""
+        ...
+
+    def landmark_points(self, ids: np.ndarray) -> MapPoints:
+        """Current estimates of the given landmarks (unknown or culled ids are left out)."""
+        ...
+
+
+@dataclass
+class TrackingResult:
+    state: TrackingState
+    T_cw: Optional[np.ndarray]
+    landmark_of_keypoint: np.ndarray          # (N,) landmark id per feature, -1 = none
+    n_inliers: int = 0
+    visible_landmarks: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    method: str = ""
+
+
+@dataclass
+class _Correspondences:
+    """Matched (feature, point) pairs; point ids of -1 are temporary depth points."""
+
+    kp: np.ndarray
+    point_ids: np.ndarray
+    xyz: np.ndarray
+
+    @staticmethod
+    def from_projection(points: MapPoints, kp_of_point: np.ndarray) -> "_Correspondences":
+        m = kp_of_point >= 0
+        return _Correspondences(kp_of_point[m], points.ids[m], points.xyz[m])
+
+    def subset(self, mask: np.ndarray) -> "_Correspondences":
+        return _Correspondences(self.kp[mask], self.point_ids[mask], self.xyz[mask])
+
+    def __len__(self) -> int:
+        return len(self.kp)
+
+
+class Tracker:
+    def __init__(self, cfg: TrackingConfig, camera: PinholeCamera):
+        self.cfg = cfg
+        self.camera = camera
+        self.state = TrackingState.NOT_INITIALIZED
+        self._last_frame: Optional[FeatureFrame] = None
+        self._last_T_cw: Optional[np.ndarray] = None
+        self._last_landmarks = np.zeros(0, np.int64)
+        self._velocity: Optional[np.ndarray] = None
+
+    def initialize(self, frame: FeatureFrame, T_cw: np.ndarray, landmark_of_keypoint: np.ndarray) -> None:
+        """Start tracking from a frame that became the first keyframe."""
+        self.state = TrackingState.OK
+        self._remember(frame, T_cw, landmark_of_keypoint)
+        self._velocity = None
+
+    def adopt_keyframe_landmarks(self, landmark_of_keypoint: np.ndarray) -> None:
+        """The last frame became a keyframe and gained new landmarks: track against them too."""
+        self._last_landmarks = landmark_of_keypoint.copy()
+
+    def track(self, frame: FeatureFrame, source: LocalMapSource) -> TrackingResult:
+        eligible = frame.dynamic_prob < self.cfg.dynamic_threshold
+        corr, T_cw, method = None, None, ""
+        if self.state == TrackingState.OK:
+            T_cw, corr = self._track_motion_model(frame, source, eligible)
+            method = "motion"
+        if corr is None:
+            T_cw, corr = self._track_by_descriptors(frame, source, eligible)
+            method = "descriptors"
+        if corr is None:
+            return self._lose(frame)
+        T_cw, corr, visible = self._track_local_map(frame, source, eligible, T_cw, corr,
+                                                    wide=(method != "motion"))
+        landmark_inliers = int((corr.point_ids >= 0).sum())
+        if landmark_inliers < self.cfg.min_tracked_inliers:
+            return self._lose(frame)
+        lm_of_kp = np.full(len(frame), -1, np.int64)
+        is_lm = corr.point_ids >= 0
+        lm_of_kp[corr.kp[is_lm]] = corr.point_ids[is_lm]
+        self._velocity = T_cw @ invert(self._last_T_cw) if self._last_T_cw is not None else None
+        self.state = TrackingState.OK
+        self._remember(frame, T_cw, lm_of_kp)
+        return TrackingResult(TrackingState.OK, T_cw, lm_of_kp, landmark_inliers, visible, method)
+
+    def _lose(self, frame: FeatureFrame) -> TrackingResult:
+        self.state = TrackingState.LOST
+        self._velocity = None
+        return TrackingResult(TrackingState.LOST, None, np.full(len(frame), -1, np.int64))
+
+    def _remember(self, frame: FeatureFrame, T_cw: np.ndarray, lm_of_kp: np.ndarray) -> None:
+        self._last_frame, self._last_T_cw, self._last_landmarks = frame, T_cw, lm_of_kp
+
+    # --- step 1: constant velocity --------------------------------------------------------------
+    def _track_motion_model(self, frame, source, eligible):
+        predicted = self._velocity @ self._last_T_cw if self._velocity is not None else self._last_T_cw
+        points = self._last_frame_points(source)
+        corr = None
+        for radius in (self.cfg.motion_search_radius, 2 * self.cfg.motion_search_radius):
+            matches = search_by_projection(frame, points, predicted, self.camera, radius,
+                                           self.cfg.max_descriptor_distance, self.cfg.match_ratio, eligible)
+            corr = _Correspondences.from_projection(points, matches.keypoint_of_point)
+            if len(corr) >= self.cfg.min_motion_matches:
+                break
+        if len(corr) < self.cfg.min_motion_matches:
+            return None, None
+        T_cw, corr = self._optimize(frame, predicted, corr)
+        if (corr.point_ids >= 0).sum() < 10:
+            return None, None
+        return T_cw, corr
+
+    def _last_frame_points(self, source: LocalMapSource) -> MapPoints:
+        """Last frame's landmarks, plus its other close depth features as temporary points: they
+        hold the pose between keyframes when few landmarks are in view (ORB-SLAM's UpdateLastFrame)."""
+        last = self._last_frame
+        landmarks = source.landmark_points(self._last_landmarks[self._last_landmarks >= 0])
+        free = (self._last_landmarks < 0) & last.has_depth & (last.depths < self.camera.close_depth)
+        free &= last.dynamic_prob < self.cfg.dynamic_threshold
+        idx = np.flatnonzero(free)
+        xyz_c = self.camera.backproject(last.uv[idx], last.depths[idx])
+        T_wc = invert(self._last_T_cw)
+        temp = MapPoints(np.full(len(idx), -1, np.int64), xyz_c @ T_wc[:3, :3].T + T_wc[:3, 3],
+                         last.descriptors[idx], last.octaves[idx])
+        return MapPoints.concat([landmarks, temp])
+
+    # --- step 2: descriptors + PnP --------------------------------------------------------------
+    def _track_by_descriptors(self, frame, source, eligible):
+        seeds = self._last_landmarks[self._last_landmarks >= 0]
+        points = source.local_points(seeds)
+        kp_idx = np.flatnonzero(eligible)
+        if len(points) < 10 or len(kp_idx) < 10:
+            return None, None
+        qi, ti = match_brute_force(frame.descriptors[kp_idx], points.descriptors, 0.8,
+                                   self.cfg.max_descriptor_distance)
+        if len(qi) < 15:
+            return None, None
+        T_cw = self._solve_pnp(frame.uv[kp_idx[qi]], points.xyz[ti])
+        if T_cw is None:
+            return None, None
+        corr = _Correspondences(kp_idx[qi], points.ids[ti], points.xyz[ti])
+        T_cw, corr = self._optimize(frame, T_cw, corr)
+        if len(corr) < 15:
+            return None, None
+        return T_cw, corr
+
+    def _solve_pnp(self, uv: np.ndarray, xyz: np.ndarray) -> Optional[np.ndarray]:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            xyz.astype(np.float64), uv.astype(np.float64), self.camera.K, None, iterationsCount=200,
+            reprojectionError=4.0, confidence=0.99, flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inliers is None or len(inliers) < 15:
+            return None
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        return T
+
+    # --- step 3: local map ----------------------------------------------------------------------
+    def _track_local_map(self, frame, source, eligible, T_cw, corr, wide: bool):
+        seeds = corr.point_ids[corr.point_ids >= 0]
+        local = source.local_points(seeds)
+        not_yet = ~np.isin(local.ids, corr.point_ids)
+        candidates = local.subset(not_yet)
+        free = eligible.copy()
+        free[corr.kp] = False
+        radius = self.cfg.motion_search_radius if wide else self.cfg.local_map_search_radius
+        matches = search_by_projection(frame, candidates, T_cw, self.camera, radius,
+                                       self.cfg.max_descriptor_distance, self.cfg.match_ratio, free)
+        extra = _Correspondences.from_projection(candidates, matches.keypoint_of_point)
+        merged = _Correspondences(np.r_[corr.kp, extra.kp], np.r_[corr.point_ids, extra.point_ids],
+                                  np.vstack([corr.xyz, extra.xyz]))
+        T_cw, merged = self._optimize(frame, T_cw, merged)
+        visible = candidates.ids[matches.visible]
+        return T_cw, merged, np.union1d(visible, seeds)
+
+    def _optimize(self, frame: FeatureFrame, T_cw: np.ndarray, corr: _Correspondences):
+        """Pose-only optimisation; returns the pose and the inlier correspondences."""
+        kp = corr.kp
+        information = frame.inv_sigma2[kp] * (1.0 - frame.dynamic_prob[kp])
+        obs = PoseObservations(corr.xyz, frame.uv[kp], frame.u_right[kp], information)
+        result = optimize_pose(T_cw, obs, self.camera, self.cfg.pose_iterations, self.cfg.pose_rounds,
+                               self.cfg.chi2_mono, self.cfg.chi2_stereo)
+        return result.T_cw, corr.subset(result.inliers)

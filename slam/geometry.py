@@ -1,0 +1,93 @@
+"""SE(3) helpers on 4x4 numpy matrices. Convention: T_ab maps points from frame b into frame a."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices of (3,) or (N,3) vectors: (3,3) or (N,3,3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def so3_exp(omega: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula for a rotation vector."""
+    omega = np.asarray(omega, dtype=float)
+    theta = np.linalg.norm(omega)
+    K = skew(omega)
+    if theta < 1e-10:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * (K @ K)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of a rotation matrix (robust near 0 and pi)."""
+    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos_theta)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-7:
+        return 0.5 * w
+    if np.pi - theta < 1e-4:
+        # Near pi the antisymmetric part vanishes: read the axis from the symmetric part.
+        B = (R + np.eye(3)) / 2.0
+        axis = np.sqrt(np.clip(np.diag(B), 0.0, None))
+        k = int(np.argmax(axis))
+        axis = B[k] / axis[k]
+        return theta * axis / np.linalg.norm(axis)
+    return theta / (2.0 * np.sin(theta)) * w
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """Pose from a twist (omega, v): rotation part first, as in GTSAM's Pose3.Expmap."""
+    xi = np.asarray(xi, dtype=float)
+    omega, v = xi[:3], xi[3:]
+    theta = np.linalg.norm(omega)
+    K = skew(omega)
+    R = so3_exp(omega)
+    if theta < 1e-10:
+        V = np.eye(3) + 0.5 * K
+    else:
+        V = (np.eye(3) + (1 - np.cos(theta)) / theta**2 * K
+             + (theta - np.sin(theta)) / theta**3 * (K @ K))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, V @ v
+    return T
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, np.ravel(t)
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of one (4,4) or many (N,4,4) rigid transforms without a general matrix inverse."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Rt = np.swapaxes(R, -1, -2)
+    out = np.zeros_like(T, dtype=float)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply T (4,4) to points (N,3)."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """Angle of one or many rotation matrices in degrees."""
+    trace = np.trace(R, axis1=-2, axis2=-1)
+    return np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def pose_distance(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) of the relative transform between two poses."""
+    D = invert(T_a) @ T_b
+    return float(np.linalg.norm(D[:3, 3])), float(rotation_angle_deg(D[:3, :3]))

@@ -1,0 +1,166 @@
+"""The ``System`` facade: feed RGB-D frames, get poses. No file I/O here (that is the pipeline's).
+
+    system = System(load_config("tum_fr1"))
+    for frame in dataset:
+        out = system.process(frame.rgb, frame.depth, frame.timestamp)   # out.T_wc is None when lost
+    timestamps, poses, tracked = system.trajectory()                     # follows optimised keyframes
+
+Wiring: extractor → dynamic filter → tracker → keyframe policy → local mapper (iSAM2). The
+``frontend`` and ``backend`` packages never see each other; this module adapts one to the other.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from backend.local_mapping import LocalMapper
+from frontend.dynamic import DynamicFilter, build_dynamic_filter
+from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_keyframe
+from frontend.orb_extractor import OrbExtractor
+from frontend.tracker import Tracker, TrackingState
+from slam.camera import PinholeCamera
+from slam.config import SlamConfig
+from slam.frame import FeatureFrame, MapPoints
+from slam.geometry import invert
+from slam.timing import ModuleTimer
+
+
+@dataclass
+class FrameOutput:
+    index: int
+    timestamp: float
+    state: TrackingState
+    T_wc: Optional[np.ndarray]
+    is_keyframe: bool
+    n_features: int
+    n_tracked: int
+
+
+@dataclass
+class _FrameRecord:
+    """A frame's pose relative to its reference keyframe, so it follows that keyframe's estimate."""
+
+    timestamp: float
+    reference_kf: int
+    T_kf_c: Optional[np.ndarray]   # None = not tracked
+
+
+class _MapView:
+    """Adapts the back end's map to the tracker's LocalMapSource protocol."""
+
+    def __init__(self, mapper: LocalMapper, n_keyframes: int, n_covisible: int):
+        self._mapper, self._n_kf, self._n_cov = mapper, n_keyframes, n_covisible
+
+    def local_points(self, seed_landmarks: np.ndarray) -> MapPoints:
+        return self._mapper.local_points(seed_landmarks, self._n_kf, self._n_cov)
+
+    def landmark_points(self, ids: np.ndarray) -> MapPoints:
+        return self._mapper.map.map_points(ids)
+
+
+class System:
+    def __init__(self, config: SlamConfig, dynamic_filter: Optional[DynamicFilter] = None):
+        self.config = config
+        self.camera = PinholeCamera.from_config(config.camera)
+        self.extractor = OrbExtractor(config.orb, self.camera)
+        self.dynamic_filter = dynamic_filter or build_dynamic_filter(config)
+        self.tracker = Tracker(config.tracking, self.camera)
+        self.mapper = LocalMapper(config.backend, config.keyframes, self.camera, config.tracking.dynamic_threshold)
+        self._map_view = _MapView(self.mapper, config.tracking.local_keyframes, config.tracking.covisible_per_keyframe)
+        self.timer = ModuleTimer()
+        self._frames: list[_FrameRecord] = []
+        self._last_keyframe_frame = -1
+        self._reference_kf = -1
+        cv2.setRNGSeed(config.seed)  # PnP-RANSAC draws from OpenCV's global generator
+
+    # --- public -----------------------------------------------------------------------------------
+    def process(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, index: Optional[int] = None) -> FrameOutput:
+        index = len(self._frames) if index is None else index
+        with self.timer.measure("extract"):
+            gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
+            frame = self.extractor.extract(gray, depth, index, timestamp)
+        with self.timer.measure("dynamic"):
+            frame.dynamic_prob = np.clip(self.dynamic_filter(frame, rgb, depth), 0.0, 1.0)
+        if self.tracker.state == TrackingState.NOT_INITIALIZED:
+            output = self._initialize(frame)
+        else:
+            output = self._track(frame)
+        self.timer.end_frame()
+        return output
+
+    @property
+    def num_keyframes(self) -> int:
+        return self.mapper.map.num_keyframes
+
+    @property
+    def num_landmarks(self) -> int:
+        return int((~self.mapper.map.landmarks.bad).sum())
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(timestamps (N,), T_wc (N,4,4), tracked (N,) bool) for every processed frame.
+
+        Each tracked frame's pose is its reference keyframe's optimised pose composed with the
+        frame's pose relative to it; untracked frames hold NaN poses.
+        """
+        kf_poses = self.mapper.map.kf_T_wc
+        stamps = np.array([f.timestamp for f in self._frames])
+        poses = np.full((len(self._frames), 4, 4), np.nan)
+        tracked = np.array([f.T_kf_c is not None for f in self._frames], dtype=bool)
+        for i, f in enumerate(self._frames):
+            if f.T_kf_c is not None:
+                poses[i] = kf_poses[f.reference_kf] @ f.T_kf_c
+        return stamps, poses, tracked
+
+    def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        kfs = self.mapper.map.keyframes
+        return np.array([k.timestamp for k in kfs]), self.mapper.map.kf_T_wc.copy()
+
+    # --- steps ------------------------------------------------------------------------------------
+    def _initialize(self, frame: FeatureFrame) -> FrameOutput:
+        static = frame.dynamic_prob < self.config.tracking.dynamic_threshold
+        if int((frame.has_depth & static).sum()) < self.config.tracking.min_init_features:
+            self._frames.append(_FrameRecord(frame.timestamp, -1, None))
+            return FrameOutput(frame.index, frame.timestamp, TrackingState.NOT_INITIALIZED, None, False, len(frame), 0)
+        T_wc = np.eye(4)
+        with self.timer.measure("backend"):
+            self.mapper.insert_keyframe(frame, T_wc, np.full(len(frame), -1, np.int64))
+        kf = self.mapper.map.keyframes[0]
+        self.tracker.initialize(frame, invert(T_wc), kf.landmark_of_keypoint)
+        self._reference_kf, self._last_keyframe_frame = 0, len(self._frames)
+        self._frames.append(_FrameRecord(frame.timestamp, 0, np.eye(4)))
+        return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, True, len(frame), len(frame))
+
+    def _track(self, frame: FeatureFrame) -> FrameOutput:
+        with self.timer.measure("tracking"):
+            result = self.tracker.track(frame, self._map_view)
+        if result.state != TrackingState.OK:
+            self._frames.append(_FrameRecord(frame.timestamp, -1, None))
+            return FrameOutput(frame.index, frame.timestamp, result.state, None, False, len(frame), 0)
+        T_wc = invert(result.T_cw)
+        tracked_ids = result.landmark_of_keypoint[result.landmark_of_keypoint >= 0]
+        with self.timer.measure("mapping"):
+            self.mapper.record_tracking(result.visible_landmarks, tracked_ids)
+            self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
+            is_keyframe = self._decide_keyframe(frame, result.landmark_of_keypoint, len(tracked_ids))
+        if is_keyframe:
+            with self.timer.measure("backend"):
+                insertion = self.mapper.insert_keyframe(frame, T_wc, result.landmark_of_keypoint)
+            self.tracker.adopt_keyframe_landmarks(self.mapper.map.keyframes[insertion.kf_id].landmark_of_keypoint)
+            self._reference_kf, self._last_keyframe_frame = insertion.kf_id, len(self._frames)
+        T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
+        self._frames.append(_FrameRecord(frame.timestamp, self._reference_kf, T_kf_c))
+        return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids))
+
+    def _decide_keyframe(self, frame: FeatureFrame, lm_of_kp: np.ndarray, n_tracked: int) -> bool:
+        ref = self.mapper.map.keyframes[self._reference_kf]
+        ref_ids = ref.landmark_of_keypoint[ref.landmark_of_keypoint >= 0]
+        lm = self.mapper.map.landmarks
+        ref_count = int((~lm.bad[ref_ids]).sum())
+        tracked_close, untracked_close = close_point_counts(frame, lm_of_kp, self.camera.close_depth,
+                                                            self.config.tracking.dynamic_threshold)
+        evidence = KeyframeEvidence(len(self._frames) - self._last_keyframe_frame, n_tracked, ref_count,
+                                    tracked_close, untracked_close)
+        return need_keyframe(self.config.keyframes, evidence)
