@@ -59,7 +59,11 @@ class BackendParams:
 
 
 def pose3(T: np.ndarray) -> gtsam.Pose3:
-    return gtsam.Pose3(np.asarray(T, dtype=float))
+    """A gtsam pose from a 4x4 matrix; the rotation is re-orthonormalised (gtsam does not check)."""
+    T = np.asarray(T, dtype=float)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*T[:3, 3]))
 
 
 class FactorGraphBackend:

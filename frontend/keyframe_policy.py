@@ -21,6 +21,8 @@ class KeyframeEvidence:
     reference_landmarks: int
     tracked_close: int
     untracked_close: int
+    motion_t: float = float("inf")      # translation since the last keyframe (m)
+    motion_deg: float = float("inf")    # rotation since the last keyframe (deg)
 
 
 def close_point_counts(frame: FeatureFrame, landmark_of_keypoint: np.ndarray, close_depth: float,
@@ -35,6 +37,7 @@ def need_keyframe(cfg: KeyframeConfig, ev: KeyframeEvidence) -> bool:
     if ev.frames_since_keyframe < cfg.min_frames:
         return False
     need_close = ev.tracked_close < cfg.close_tracked_min and ev.untracked_close > cfg.close_untracked_min
-    timed_out = ev.frames_since_keyframe >= cfg.max_frames
+    moved = ev.motion_t >= cfg.min_motion_t or ev.motion_deg >= cfg.min_motion_deg
+    timed_out = ev.frames_since_keyframe >= cfg.max_frames and moved
     weak = ev.tracked_landmarks < cfg.tracked_ratio * ev.reference_landmarks or need_close
     return (weak or timed_out) and ev.tracked_landmarks > 15

@@ -39,7 +39,7 @@ def first_per_group(groups: np.ndarray, keys: np.ndarray) -> np.ndarray:
 
 def search_by_projection(frame: FeatureFrame, points: MapPoints, T_cw: np.ndarray, camera: PinholeCamera,
                          radius: float, max_distance: int, ratio: float, eligible: np.ndarray,
-                         max_level_gap: int = 2) -> ProjectionMatches:
+                         max_level_gap: int = 1) -> ProjectionMatches:
     """Match map points to the frame's eligible keypoints near their projection under T_cw.
 
     The search radius grows with the keypoint's pyramid scale; the best candidate must beat the
@@ -57,22 +57,27 @@ def search_by_projection(frame: FeatureFrame, points: MapPoints, T_cw: np.ndarra
     kp_idx = np.flatnonzero(eligible)
     if len(vis_idx) == 0:
         return result
-    max_scale = frame.scale_factors[-1] if max_level_gap > 0 else 1.0
+    has_octave = len(points.octaves) == m
+    point_scale = frame.scale_factors[np.clip(points.octaves, 0, len(frame.scale_factors) - 1)] if has_octave \
+        else np.ones(m)
     pairs = cKDTree(uv[vis_idx]).sparse_distance_matrix(
-        cKDTree(frame.uv[kp_idx]), radius * max_scale, output_type="ndarray")
+        cKDTree(frame.uv[kp_idx]), radius * point_scale[vis_idx].max(), output_type="ndarray")
     if len(pairs) == 0:
         return result
     pi, ki, dist_px = vis_idx[pairs["i"]], kp_idx[pairs["j"]], pairs["v"]
-    kp_oct = frame.octaves[ki]
-    ok = dist_px <= radius * frame.scale_factors[kp_oct]
-    if len(points.octaves) == m:
-        ok &= np.abs(kp_oct - points.octaves[pi]) <= max_level_gap
+    # ORB-SLAM: the radius scales with the level the point was seen at, and the keypoint must lie
+    # on a neighbouring level of the pyramid.
+    ok = dist_px <= radius * point_scale[pi]
+    if has_octave:
+        ok &= np.abs(frame.octaves[ki] - points.octaves[pi]) <= max_level_gap
     pi, ki = pi[ok], ki[ok]
     ham = hamming_pairs(points.descriptors[pi], frame.descriptors[ki])
     best, second = _best_two(pi, ham)
     accept = ham[best] <= max_distance
-    has_second = second >= 0
-    accept[has_second] &= ham[best][has_second] < ratio * ham[second[has_second]] + 1e-9
+    # The ratio test only rejects when the runner-up lies on the same level (as in ORB-SLAM).
+    ambiguous = second >= 0
+    ambiguous[ambiguous] &= frame.octaves[ki[second[ambiguous]]] == frame.octaves[ki[best[ambiguous]]]
+    accept[ambiguous] &= ham[best][ambiguous] <= ratio * ham[second[ambiguous]]
     best = best[accept]
     # One point per keypoint: the lowest distance wins.
     winners = best[first_per_group(ki[best], ham[best])]

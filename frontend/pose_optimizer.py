@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.geometry import se3_exp
+from slam.geometry import orthonormalize, se3_exp
 
 
 @dataclass
@@ -75,18 +75,19 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
                 delta = np.sqrt(threshold)
                 r = np.sqrt(chi2)
                 w = w * np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
-            H = np.einsum("n,nki,nkj->ij", w, J, J)
-            b = np.einsum("n,nki,nk->i", w, J, e)
+            Jw = (J * w[:, None, None]).reshape(-1, 6)
+            H = Jw.T @ J.reshape(-1, 6)
+            b = Jw.T @ e.reshape(-1)
             try:
                 step = np.linalg.solve(H + 1e-9 * np.eye(6), b)
             except np.linalg.LinAlgError:
                 break
             T = se3_exp(step) @ T
-            if np.linalg.norm(step) < 1e-8:
+            if np.linalg.norm(step) < 1e-7:
                 break
         e, _, _, depth = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
         chi2 = obs.information * np.einsum("ij,ij->i", e, e)
         active = (chi2 <= threshold) & (depth > 0)
         if active.sum() < 10:
             break
-    return PoseResult(T, active, chi2)
+    return PoseResult(orthonormalize(T), active, chi2)

@@ -23,7 +23,7 @@ from frontend.pose_optimizer import PoseObservations, optimize_pose
 from slam.camera import PinholeCamera
 from slam.config import TrackingConfig
 from slam.frame import FeatureFrame, MapPoints
-from slam.geometry import invert
+from slam.geometry import invert, orthonormalize
 
 
 class TrackingState(Enum):
@@ -114,7 +114,7 @@ class Tracker:
         lm_of_kp = np.full(len(frame), -1, np.int64)
         is_lm = corr.point_ids >= 0
         lm_of_kp[corr.kp[is_lm]] = corr.point_ids[is_lm]
-        self._velocity = T_cw @ invert(self._last_T_cw) if self._last_T_cw is not None else None
+        self._velocity = orthonormalize(T_cw @ invert(self._last_T_cw)) if self._last_T_cw is not None else None
         self.state = TrackingState.OK
         self._remember(frame, T_cw, lm_of_kp)
         return TrackingResult(TrackingState.OK, T_cw, lm_of_kp, landmark_inliers, visible, method)
@@ -129,12 +129,13 @@ class Tracker:
 
     # --- step 1: constant velocity --------------------------------------------------------------
     def _track_motion_model(self, frame, source, eligible):
-        predicted = self._velocity @ self._last_T_cw if self._velocity is not None else self._last_T_cw
+        predicted = orthonormalize(self._velocity @ self._last_T_cw) if self._velocity is not None else self._last_T_cw
         points = self._last_frame_points(source)
         corr = None
         for radius in (self.cfg.motion_search_radius, 2 * self.cfg.motion_search_radius):
+            # No ratio test against the last frame (as ORB-SLAM): the pose optimisation rejects outliers.
             matches = search_by_projection(frame, points, predicted, self.camera, radius,
-                                           self.cfg.max_descriptor_distance, self.cfg.match_ratio, eligible)
+                                           self.cfg.max_descriptor_distance, 1.0, eligible)
             corr = _Correspondences.from_projection(points, matches.keypoint_of_point)
             if len(corr) >= self.cfg.min_motion_matches:
                 break

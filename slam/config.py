@@ -63,7 +63,7 @@ class TrackingConfig:
     local_map_search_radius: float = 4.0
     max_descriptor_distance: int = 100
     strict_descriptor_distance: int = 50
-    match_ratio: float = 0.9
+    match_ratio: float = 0.8
     min_motion_matches: int = 20
     min_tracked_inliers: int = 30
     min_init_features: int = 300
@@ -79,7 +79,12 @@ class TrackingConfig:
 
 @dataclass
 class KeyframeConfig:
-    max_frames: int = 30
+    # A keyframe at least every max_frames frames, provided the camera moved enough since the last
+    # one: frequent keyframes give iSAM2 more constraints (measured: 0.036 m -> 0.026 m ATE on
+    # fr1/rpy going from 30 to 5), while a still camera does not flood the graph.
+    max_frames: int = 5
+    min_motion_t: float = 0.02
+    min_motion_deg: float = 2.0
     min_frames: int = 0
     tracked_ratio: float = 0.75
     # ORB-SLAM's "need to insert close points": few tracked close points, many untracked ones.
@@ -92,11 +97,12 @@ class KeyframeConfig:
 @dataclass
 class BackendConfig:
     relinearize_threshold: float = 0.01
-    relinearize_skip: int = 1
+    relinearize_skip: int = 5
     extra_updates: int = 1
     pixel_sigma: float = 1.0
     # Depth noise sigma_z = depth_noise_coeff * z^2 (Kinect-class sensors).
-    depth_noise_coeff: float = 0.0015
+    # Fitted on fr1/rpy residuals: disparity errors were ~2.5x those of the 0.0015 z^2 sensor model.
+    depth_noise_coeff: float = 0.004
     huber_k: float = 2.8
     # Loose relative-pose prior between consecutive keyframes: keeps every keyframe constrained.
     odometry_sigma_t: float = 0.05
@@ -137,7 +143,7 @@ class SlamConfig:
 # Values that must be strictly positive / non-negative; checked after types.
 _POSITIVE = {
     "camera.fx", "camera.fy", "camera.width", "camera.height", "camera.depth_scale", "camera.bf",
-    "camera.depth_threshold", "camera.max_depth", "camera.fps", "orb.n_features", "orb.scale_factor",
+    "camera.depth_threshold", "camera.max_depth", "keyframes.min_motion_t", "keyframes.min_motion_deg", "camera.fps", "orb.n_features", "orb.scale_factor",
     "orb.n_levels", "orb.oversample", "orb.cell_size", "tracking.motion_search_radius",
     "tracking.local_map_search_radius", "tracking.pose_iterations", "tracking.pose_rounds",
     "tracking.chi2_mono", "tracking.chi2_stereo", "keyframes.max_frames", "backend.relinearize_threshold",

@@ -91,3 +91,20 @@ def pose_distance(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) of the relative transform between two poses."""
     D = invert(T_a) @ T_b
     return float(np.linalg.norm(D[:3, 3])), float(rotation_angle_deg(D[:3, :3]))
+
+
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """Project a pose's rotation back onto SO(3) (nearest rotation by SVD).
+
+    Chains of products (velocity model, composed relative poses) accumulate rounding error that
+    otherwise grows geometrically, since each prediction multiplies the previous error in.
+    """
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    out = T.copy()
+    out[:3, :3] = R
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out

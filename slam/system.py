@@ -24,7 +24,7 @@ from frontend.tracker import Tracker, TrackingState
 from slam.camera import PinholeCamera
 from slam.config import SlamConfig
 from slam.frame import FeatureFrame, MapPoints
-from slam.geometry import invert
+from slam.geometry import invert, pose_distance
 from slam.timing import ModuleTimer
 
 
@@ -144,7 +144,7 @@ class System:
         with self.timer.measure("mapping"):
             self.mapper.record_tracking(result.visible_landmarks, tracked_ids)
             self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
-            is_keyframe = self._decide_keyframe(frame, result.landmark_of_keypoint, len(tracked_ids))
+            is_keyframe = self._decide_keyframe(frame, T_wc, result.landmark_of_keypoint, len(tracked_ids))
         if is_keyframe:
             with self.timer.measure("backend"):
                 insertion = self.mapper.insert_keyframe(frame, T_wc, result.landmark_of_keypoint)
@@ -154,13 +154,15 @@ class System:
         self._frames.append(_FrameRecord(frame.timestamp, self._reference_kf, T_kf_c))
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids))
 
-    def _decide_keyframe(self, frame: FeatureFrame, lm_of_kp: np.ndarray, n_tracked: int) -> bool:
+    def _decide_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray, n_tracked: int) -> bool:
         ref = self.mapper.map.keyframes[self._reference_kf]
         ref_ids = ref.landmark_of_keypoint[ref.landmark_of_keypoint >= 0]
         lm = self.mapper.map.landmarks
-        ref_count = int((~lm.bad[ref_ids]).sum())
+        # Like ORB-SLAM's TrackedMapPoints(nMinObs): only landmarks confirmed by a second keyframe.
+        ref_count = int(((~lm.bad[ref_ids]) & (lm.n_obs[ref_ids] >= 2)).sum())
         tracked_close, untracked_close = close_point_counts(frame, lm_of_kp, self.camera.close_depth,
                                                             self.config.tracking.dynamic_threshold)
         evidence = KeyframeEvidence(len(self._frames) - self._last_keyframe_frame, n_tracked, ref_count,
-                                    tracked_close, untracked_close)
+                                    tracked_close, untracked_close,
+                                    *pose_distance(self.mapper.map.kf_T_wc[-1], T_wc))
         return need_keyframe(self.config.keyframes, evidence)
