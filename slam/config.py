@@ -251,21 +251,28 @@ def apply_yaml(config: SlamConfig, path: str | Path) -> SlamConfig:
     return validate(config, str(path))
 
 
+def apply_overrides(config: SlamConfig, overrides: dict[str, Any], source: str = "<overrides>") -> SlamConfig:
+    """Overlay dotted-key values ({'tracking.match_ratio': 0.8, ...}) in place and validate."""
+    nested: dict[str, Any] = {}
+    for dotted, value in overrides.items():
+        node = nested
+        *parents, leaf = dotted.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{source}: '{dotted}' conflicts with another override")
+        node[leaf] = value
+    _merge_section(config, nested, "", source)
+    return validate(config, source)
+
+
 def load_config(*paths: str | Path, overrides: Optional[dict[str, Any]] = None) -> SlamConfig:
     """Defaults, then each file in order, then ``overrides`` ({'tracking.match_ratio': 0.8, ...})."""
     config = SlamConfig()
     for path in paths:
         apply_yaml(config, path)
     if overrides:
-        nested: dict[str, Any] = {}
-        for dotted, value in overrides.items():
-            node = nested
-            *parents, leaf = dotted.split(".")
-            for part in parents:
-                node = node.setdefault(part, {})
-            node[leaf] = value
-        _merge_section(config, nested, "", "<overrides>")
-        validate(config, "<overrides>")
+        apply_overrides(config, overrides)
     return config
 
 

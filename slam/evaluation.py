@@ -411,27 +411,35 @@ def _load(path: PathLike, role: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def evaluate_files(gt_path: PathLike, est_path: PathLike, max_dt: float = 0.02) -> EvaluationReport:
-    """Evaluate a TUM estimate file against a TUM ground-truth file.
+    """Evaluate a TUM estimate file against a TUM ground-truth file (see :func:`evaluate`).
 
-    Computes ATE, per-frame RPE and RPE over 1 s. A sequence too short for
-    1 s pairs gets ``rpe_time=None`` and a note instead of an error; every
-    other failure raises :class:`EvaluationError` naming both files
-    (malformed lines raise ``TrajectoryFormatError`` with file and line).
+    Malformed lines raise ``TrajectoryFormatError`` with file and line; a missing or empty file
+    raises :class:`EvaluationError` naming it.
     """
     gt_t, gt_poses = _load(gt_path, "ground truth")
     est_t, est_poses = _load(est_path, "estimate")
+    return evaluate(gt_t, gt_poses, est_t, est_poses, max_dt, str(gt_path), str(est_path))
+
+
+def evaluate(gt_t: np.ndarray, gt_poses: np.ndarray, est_t: np.ndarray, est_poses: np.ndarray,
+             max_dt: float = 0.02, gt_label: str = "ground truth", est_label: str = "estimate") -> EvaluationReport:
+    """ATE, per-frame RPE and RPE over 1 s of an estimate against ground truth.
+
+    A sequence too short for 1 s pairs gets ``rpe_time=None`` and a note instead of an error;
+    every other failure raises :class:`EvaluationError` naming both inputs.
+    """
     try:
         ate_res = ate(gt_t, gt_poses, est_t, est_poses, max_dt)
         frame = rpe_frames(gt_t, gt_poses, est_t, est_poses, max_dt)
     except EvaluationError as exc:
-        raise EvaluationError(f"{est_path} vs {gt_path}: {exc}") from None
+        raise EvaluationError(f"{est_label} vs {gt_label}: {exc}") from None
     notes: list[str] = []
     try:
         per_second: RpeResult | None = rpe_seconds(gt_t, gt_poses, est_t, est_poses)
     except EvaluationError as exc:
         per_second = None
         notes.append(f"RPE over 1 s not computed: {exc}")
-    return EvaluationReport(gt_path=str(gt_path), est_path=str(est_path), n_gt=len(gt_t), n_est=len(est_t),
+    return EvaluationReport(gt_path=gt_label, est_path=est_label, n_gt=len(gt_t), n_est=len(est_t),
                             max_dt=float(max_dt), ate=ate_res, rpe_frame=frame, rpe_time=per_second,
                             notes=notes)
 

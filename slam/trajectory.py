@@ -159,9 +159,18 @@ def write_tum(path: PathLike, timestamps: np.ndarray, poses: np.ndarray) -> None
     order = np.argsort(t, kind="stable")
     rows = tum_rows_from_poses(P[order])
     text = TUM_HEADER + "\n" + "".join(format_tum_line(ts, r) for ts, r in zip(t[order], rows))
+    write_text_atomic(path, text)
+
+
+def write_text_atomic(path: PathLike, text: str) -> None:
+    """Write ``text`` via a flushed, fsynced temporary file in the same folder, then rename it
+    over ``path``: readers see the old file or the complete new one, never half of it."""
     target = Path(path)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)  # mkstemp creates 0600; results are meant to be shared
         with os.fdopen(fd, "w", encoding="utf-8") as handle:
             handle.write(text)
             handle.flush()
