@@ -16,12 +16,14 @@ from slam.frame import FeatureFrame
 
 
 def features_per_level(n_features: int, scale_factor: float, n_levels: int) -> np.ndarray:
-    """ORB-SLAM's geometric share of features per level (coarser levels get fewer)."""
+    """ORB-SLAM's geometric share of features per level (coarser levels get fewer); sums exactly
+    to n_features (largest-remainder rounding)."""
     inv = 1.0 / scale_factor
-    first = n_features * (1 - inv) / (1 - inv**n_levels)
-    counts = np.round(first * inv ** np.arange(n_levels)).astype(int)
-    counts[0] += n_features - counts.sum()
-    return np.maximum(counts, 0)
+    share = n_features * (1 - inv) / (1 - inv**n_levels) * inv ** np.arange(n_levels)
+    counts = np.floor(share).astype(int)
+    remainder = n_features - counts.sum()
+    counts[np.argsort(-(share - counts), kind="stable")[:remainder]] += 1
+    return counts
 
 
 def distribute_on_grid(xy: np.ndarray, response: np.ndarray, octave: np.ndarray, scale_factors: np.ndarray,

@@ -68,9 +68,10 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
     for round_idx in range(rounds):
         robust = round_idx < 2
         for _ in range(iterations):
-            e, J, _, _ = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
+            e, J, _, depth = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
             chi2 = obs.information * np.einsum("ij,ij->i", e, e)
-            w = obs.information * active
+            # A point behind (or at) the camera has no meaningful projection: it must not vote.
+            w = obs.information * active * (depth > 1e-3)
             if robust:
                 delta = np.sqrt(threshold)
                 r = np.sqrt(chi2)
@@ -87,7 +88,7 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
                 break
         e, _, _, depth = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
         chi2 = obs.information * np.einsum("ij,ij->i", e, e)
-        active = (chi2 <= threshold) & (depth > 0)
+        active = (chi2 <= threshold) & (depth > 1e-3)
         if active.sum() < 10:
             break
     return PoseResult(orthonormalize(T), active, chi2)

@@ -50,8 +50,10 @@ class PinholeCamera:
         """Pixel coordinates (N,2) of the distorted image to those of the ideal pinhole image."""
         if not self.has_distortion or len(pts) == 0:
             return np.asarray(pts, dtype=float).copy()
+        # OpenCV's default 5 iterations leave ~0.1 px near the corners under fr1's strong distortion.
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
         und = cv2.undistortPoints(np.asarray(pts, np.float64).reshape(-1, 1, 2), self.K,
-                                  np.asarray(self.distortion), P=self.K)
+                                  np.asarray(self.distortion), R=None, P=self.K, criteria=criteria)
         return und.reshape(-1, 2)
 
     def project(self, points_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -209,9 +209,9 @@ def validate(config: SlamConfig, source: str = "<config>") -> SlamConfig:
     for dotted, value in _iter_values(config):
         if dotted in _POSITIVE and not value > 0:
             raise ConfigError(f"{source}: '{dotted}' must be > 0, got {value!r}")
-        if dotted in _NON_NEGATIVE and value < 0:
+        if dotted in _NON_NEGATIVE and not value >= 0:  # 'not >=' also rejects NaN
             raise ConfigError(f"{source}: '{dotted}' must be >= 0, got {value!r}")
-        if dotted in _UNIT_INTERVAL and not 0.0 <= value <= 1.0:
+        if dotted in _UNIT_INTERVAL and not 0.0 <= value <= 1.0:  # NaN fails too
             raise ConfigError(f"{source}: '{dotted}' must be within [0, 1], got {value!r}")
     cam = config.camera
     if len(cam.distortion) not in (4, 5):

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -25,20 +26,8 @@ def so3_exp(omega: np.ndarray) -> np.ndarray:
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vector of a rotation matrix (robust near 0 and pi)."""
-    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(cos_theta)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if theta < 1e-7:
-        return 0.5 * w
-    if np.pi - theta < 1e-4:
-        # Near pi the antisymmetric part vanishes: read the axis from the symmetric part.
-        B = (R + np.eye(3)) / 2.0
-        axis = np.sqrt(np.clip(np.diag(B), 0.0, None))
-        k = int(np.argmax(axis))
-        axis = B[k] / axis[k]
-        return theta * axis / np.linalg.norm(axis)
-    return theta / (2.0 * np.sin(theta)) * w
+    """Rotation vector of a rotation matrix, robust near 0 and pi (scipy's quaternion route)."""
+    return Rotation.from_matrix(R).as_rotvec()
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:

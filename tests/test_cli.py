@@ -1,0 +1,296 @@
+"""CLI smoke tests: ``slam.cli.main([...])`` in-process (fast) and one real ``dynslam --help`` subprocess."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from slam.cli import main
+from slam.config import SlamConfig, load_config
+from slam.datasets import SyntheticSequence, write_tum_layout
+from slam.evaluation import evaluate_files
+from slam.trajectory import read_tum, write_tum
+
+RESULT_FILES = ("config.yaml", "trajectory.txt", "trajectory_online.txt", "keyframes.txt", "groundtruth.txt",
+                "summary.json", "evaluation.json")
+SYNTH_FX = 550.0  # differs from both the config default (525) and the freiburg1 preset (517.3)
+
+
+@pytest.fixture(autouse=True)
+def _restore_warning_format(monkeypatch):
+    """main() installs its own warnings.formatwarning; keep it from leaking into other tests."""
+    monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def data_lines(path: Path) -> list[list[str]]:
+    return [line.split() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+
+
+# --- help / config -----------------------------------------------------------------------------------
+
+def test_dynslam_help_in_a_subprocess():
+    exe = shutil.which("dynslam") or str(Path(sys.executable).with_name("dynslam"))
+    if not Path(exe).exists():
+        pytest.skip("the dynslam console script is not installed (pip install -e .)")
+    proc = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    for command in ("run", "demo", "eval", "config"):
+        assert command in proc.stdout
+
+
+def test_config_prints_yaml_that_loads_back(capsys, tmp_path):
+    code, out, _ = run_cli(capsys, "config")
+    assert code == 0
+    path = tmp_path / "printed.yaml"
+    path.write_text(out)
+    assert load_config(path).to_dict() == SlamConfig().to_dict()
+
+
+def test_config_with_preset_shows_its_intrinsics(capsys):
+    code, out, _ = run_cli(capsys, "config", "-c", "tum_fr1")
+    assert code == 0
+    data = yaml.safe_load(out)
+    assert data["camera"]["fx"] == pytest.approx(517.306408)
+    assert data["camera"]["name"] == "tum_fr1"
+    assert "517.306408" in out
+
+
+def test_config_set_override_is_applied(capsys):
+    code, out, _ = run_cli(capsys, "config", "--set", "tracking.match_ratio=0.7", "--set", "orb.n_features=1500")
+    assert code == 0
+    data = yaml.safe_load(out)
+    assert data["tracking"]["match_ratio"] == 0.7 and data["orb"]["n_features"] == 1500
+
+
+def test_config_unknown_preset_exits_2(capsys):
+    code, out, err = run_cli(capsys, "config", "-c", "no_such_preset")
+    assert code == 2
+    assert "no_such_preset" in err and "tum_fr1" in err
+
+
+# --- eval --------------------------------------------------------------------------------------------
+
+@pytest.fixture
+def trajectories(tmp_path) -> tuple[Path, Path]:
+    """Ground truth and an estimate (noisy, in another world frame) as TUM files."""
+    rng = np.random.default_rng(0)
+    t = 100.0 + np.arange(90) / 30.0
+    gt = np.tile(np.eye(4), (len(t), 1, 1))
+    gt[:, :3, :3] = Rotation.from_rotvec(np.c_[0.2 * np.sin(t), 0.3 * np.cos(0.5 * t), 0.1 * t]).as_matrix()
+    gt[:, :3, 3] = np.c_[np.cos(t), np.sin(t), 0.1 * t]
+    offset = np.eye(4)
+    offset[:3, :3] = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix()
+    offset[:3, 3] = [1.0, -2.0, 0.5]
+    est = offset @ gt
+    est[:, :3, 3] += rng.normal(scale=0.01, size=(len(t), 3))
+    gt_path, est_path = tmp_path / "gt.txt", tmp_path / "est.txt"
+    write_tum(gt_path, t, gt)
+    write_tum(est_path, t + 0.003, est)
+    return gt_path, est_path
+
+
+def test_eval_prints_the_ate_table(capsys, trajectories):
+    gt, est = trajectories
+    code, out, _ = run_cli(capsys, "eval", gt, est)
+    assert code == 0
+    assert "ATE [m]" in out and "RPE/frame" in out
+    rmse = evaluate_files(gt, est).ate.rmse
+    ate_row = next(line for line in out.splitlines() if line.startswith("ATE [m]"))
+    assert ate_row.split()[2:4] == ["90", f"{rmse:.4f}"]
+
+
+def test_eval_json_matches_slam_evaluation(capsys, trajectories):
+    gt, est = trajectories
+    code, out, _ = run_cli(capsys, "eval", gt, est, "--json")
+    assert code == 0
+    report = json.loads(out)
+    expected = evaluate_files(gt, est)
+    assert report["ate"]["rmse"] == pytest.approx(expected.ate.rmse, rel=1e-12)
+    assert report["ate"]["n_matched"] == 90
+    assert 0.005 < report["ate"]["rmse"] < 0.03  # the 1 cm noise, the world offset aligned away
+    assert report["rpe_frame"]["n_pairs"] == 89
+
+
+def test_eval_max_dt_option_is_used(capsys, trajectories):
+    gt, est = trajectories  # estimate stamps are 3 ms late
+    code, _, err = run_cli(capsys, "eval", gt, est, "--max-dt", "0.001")
+    assert code == 2
+    assert "no timestamps associated" in err
+
+
+@pytest.mark.parametrize("which", ["groundtruth", "estimate"])
+def test_eval_missing_file_exits_2_naming_it(capsys, trajectories, tmp_path, which):
+    gt, est = trajectories
+    missing = tmp_path / f"missing_{which}.txt"
+    args = (missing, est) if which == "groundtruth" else (gt, missing)
+    code, out, err = run_cli(capsys, "eval", *args)
+    assert code == 2
+    assert str(missing) in err
+    assert "Traceback" not in err and out == ""
+
+
+def test_eval_malformed_file_exits_2_naming_file_and_line(capsys, trajectories, tmp_path):
+    gt, _ = trajectories
+    bad = tmp_path / "bad.txt"
+    bad.write_text("# header\n1.0 0 0 0 0 0 0 1\n2.0 0 0 zero 0 0 0 1\n")
+    code, _, err = run_cli(capsys, "eval", gt, bad)
+    assert code == 2
+    assert f"{bad}, line 3" in err
+
+
+# --- run: argument and config errors -------------------------------------------------------------------
+
+def test_run_missing_folder_exits_2(capsys, tmp_path):
+    missing = tmp_path / "no_such_sequence"
+    code, out, err = run_cli(capsys, "run", missing, "-o", tmp_path / "out")
+    assert code == 2
+    assert str(missing) in err and "does not exist" in err
+    assert "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_run_folder_without_lists_exits_2(capsys, tmp_path):
+    code, _, err = run_cli(capsys, "run", tmp_path, "-o", tmp_path / "out")
+    assert code == 2
+    assert "rgb.txt" in err
+
+
+def test_run_bad_override_exits_2_naming_the_key(capsys, tmp_path, synthetic_folder):
+    code, _, err = run_cli(capsys, "run", synthetic_folder, "-o", tmp_path / "out", "--set", "tracking.match_ratio=2")
+    assert code == 2
+    assert "tracking.match_ratio" in err
+    assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_run_unknown_override_key_exits_2(capsys, tmp_path, synthetic_folder):
+    code, _, err = run_cli(capsys, "run", synthetic_folder, "-o", tmp_path / "out", "--set", "tracking.no_such_key=1")
+    assert code == 2
+    assert "tracking.no_such_key" in err
+
+
+def test_set_without_equals_exits_2(capsys):
+    code, _, err = run_cli(capsys, "config", "--set", "tracking.match_ratio")
+    assert code == 2
+    assert "key=value" in err
+
+
+# --- demo ----------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory) -> tuple[int, Path]:
+    out_dir = tmp_path_factory.mktemp("demo") / "results"
+    saved_format = warnings.formatwarning
+    try:
+        code = main(["demo", "--frames", "40", "-o", str(out_dir), "-q"])
+    finally:
+        warnings.formatwarning = saved_format
+    return code, out_dir
+
+
+def test_demo_exits_0_and_writes_the_results_folder(demo_run):
+    code, out_dir = demo_run
+    assert code == 0
+    for name in RESULT_FILES:
+        assert (out_dir / name).is_file(), name
+    config = load_config(out_dir / "config.yaml")
+    assert config.camera.name == "synthetic"
+
+
+def test_demo_summary_counts_and_accuracy(demo_run):
+    _, out_dir = demo_run
+    summary = json.loads((out_dir / "summary.json").read_text())
+    assert summary["frames"] == 40
+    assert summary["tracked"] == 40
+    assert summary["lost"] == 0 and summary["lost_frames"] == []
+    assert summary["keyframes"] >= 2
+    report = evaluate_files(out_dir / "groundtruth.txt", out_dir / "trajectory.txt")
+    assert report.ate.n_matched == 40
+    assert report.ate.rmse < 0.01
+    assert summary["ate_rmse_m"] == pytest.approx(report.ate.rmse, abs=1e-6)
+    evaluation = json.loads((out_dir / "evaluation.json").read_text())
+    assert evaluation["ate"]["rmse"] == pytest.approx(report.ate.rmse, abs=1e-6)
+    gt_t, _ = read_tum(out_dir / "groundtruth.txt")
+    np.testing.assert_allclose(gt_t, np.arange(40) / 30.0, atol=1e-6)
+
+
+def test_demo_trajectory_files_are_complete_and_sorted(demo_run):
+    _, out_dir = demo_run
+    rows = data_lines(out_dir / "trajectory.txt")
+    stamps = np.array([float(r[0]) for r in rows])
+    assert len(rows) == 40 and all(len(r) == 8 for r in rows)
+    assert np.all(np.diff(stamps) > 0), "trajectory.txt must be sorted by timestamp"
+    online = data_lines(out_dir / "trajectory_online.txt")
+    assert len(online) == 40
+    np.testing.assert_allclose([float(r[0]) for r in online], stamps)
+    summary = json.loads((out_dir / "summary.json").read_text())
+    keyframes = data_lines(out_dir / "keyframes.txt")
+    assert len(keyframes) == summary["keyframes"]
+    assert set(float(r[0]) for r in keyframes) <= set(stamps.tolist())
+    # the online (causal) poses are good too, not only the optimised ones
+    assert evaluate_files(out_dir / "groundtruth.txt", out_dir / "trajectory_online.txt").ate.rmse < 0.02
+
+
+# --- run on a synthetic sequence written to disk -----------------------------------------------------
+
+@pytest.fixture(scope="module")
+def synthetic_folder(tmp_path_factory) -> Path:
+    """SyntheticSequence(n_frames=30) in TUM layout with its camera.yaml. The folder name mentions
+    freiburg1 on purpose: the camera.yaml must win over the preset guessed from the name."""
+    seq = SyntheticSequence(n_frames=30, fx=SYNTH_FX, fy=SYNTH_FX, cx=321.0, cy=238.0)
+    return write_tum_layout(seq, tmp_path_factory.mktemp("seq") / "rgbd_dataset_freiburg1_synthetic")
+
+
+@pytest.fixture(scope="module")
+def synthetic_run(synthetic_folder, tmp_path_factory) -> tuple[int, Path]:
+    out_dir = tmp_path_factory.mktemp("run") / "results"
+    saved_format = warnings.formatwarning
+    try:
+        code = main(["run", str(synthetic_folder), "-o", str(out_dir), "-q"])
+    finally:
+        warnings.formatwarning = saved_format
+    return code, out_dir
+
+
+def test_run_on_synthetic_folder_uses_camera_yaml(synthetic_run):
+    code, out_dir = synthetic_run
+    assert code == 0
+    resolved = yaml.safe_load((out_dir / "config.yaml").read_text())
+    camera = resolved["camera"]
+    assert camera["fx"] == SYNTH_FX and camera["fy"] == SYNTH_FX
+    assert camera["cx"] == 321.0 and camera["cy"] == 238.0
+    assert camera["width"] == 640 and camera["height"] == 480
+    assert camera["distortion"] == [0.0] * 5, "no freiburg1 distortion: camera.yaml takes precedence"
+
+
+def test_run_on_synthetic_folder_tracks_every_frame(synthetic_run, synthetic_folder):
+    _, out_dir = synthetic_run
+    summary = json.loads((out_dir / "summary.json").read_text())
+    assert summary["frames"] == summary["tracked"] == 30
+    assert summary["dataset"] == synthetic_folder.name
+    report = evaluate_files(synthetic_folder / "groundtruth.txt", out_dir / "trajectory.txt")
+    assert report.ate.n_matched == 30
+    assert report.ate.rmse < 0.01
+    assert not (out_dir / "groundtruth.txt").exists(), "real folders keep their ground truth where it is"
+
+
+def test_run_max_frames(capsys, synthetic_folder, tmp_path):
+    code, out, _ = run_cli(capsys, "run", synthetic_folder, "-o", tmp_path / "out", "-q", "--max-frames", "12")
+    assert code == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["frames"] == 12 and summary["tracked"] == 12
+    assert len(data_lines(tmp_path / "out" / "trajectory.txt")) == 12
+    assert "12 frames" in out

@@ -1,0 +1,131 @@
+#!/usr/bin/env python3
+"""Accuracy and per-module speed of dynslam on real sequences, optionally beside stock ORB-SLAM3.
+
+    python tools/benchmark.py                                   # fr1/rpy (400 frames) from ../shared/data
+    python tools/benchmark.py SEQ_DIR [SEQ_DIR ...] --repeats 3
+    python tools/benchmark.py --peer ../orb-venv/bin/python     # also run ORB-SLAM3 in that venv
+
+Prints a Markdown table (ATE RMSE; median ms per frame per module) and writes it with the raw
+numbers to ``--output`` (benchmark.md, benchmark.json). Targets are reported, not asserted, so a
+slow machine gives numbers rather than a failure; ``--check`` turns the targets into an exit code.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+DEFAULT_SEQUENCES = [SHARED / "data" / "rgbd_dataset_freiburg1_rpy_first400"]
+MODULES = ("extract", "dynamic", "tracking", "mapping", "backend", "total")
+TARGETS = {"ate_rmse_m": 0.030, "median_total_ms": 60.0}
+
+
+def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides: list[str]) -> dict:
+    from slam.cli import _parse_overrides, resolve_run_config
+    from slam.datasets import TumDataset
+    from slam.pipeline import Pipeline
+
+    config = resolve_run_config(sequence, config_files, _parse_overrides(overrides))
+    dataset = TumDataset(sequence, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
+    pipeline = Pipeline(dataset, config, output)
+    summary = pipeline.run()
+    backend_ms = pipeline.system.timer.per_frame("backend")
+    keyframe_ms = backend_ms[backend_ms > 0]
+    return {
+        "system": "dynslam", "sequence": sequence.name, "frames": summary.frames, "tracked": summary.tracked,
+        "keyframes": summary.keyframes, "ate_rmse_m": summary.ate_rmse_m,
+        "median_ms": {m: summary.timing_ms.get(m, {}).get("median_ms", 0.0) for m in MODULES},
+        "mean_total_ms": summary.timing_ms.get("total", {}).get("mean_ms", 0.0),
+        "backend_ms_per_keyframe": float(np.median(keyframe_ms)) if len(keyframe_ms) else 0.0,
+    }
+
+
+def run_peer(python: str, sequence: Path, workdir: Path) -> dict:
+    """Stock ORB-SLAM3 through ../shared/tools/orbslam3_peer (never a dependency of dynslam)."""
+    from slam.evaluation import evaluate_files
+
+    peer = SHARED / "tools" / "orbslam3_peer"
+    settings = "bonn.yaml" if "bonn" in sequence.name else "tum1.yaml"
+    est = workdir / f"orbslam3_{sequence.name}.txt"
+    proc = subprocess.run([python, str(peer / "run_orbslam3.py"), str(sequence), str(peer / "small_vocabulary.txt"),
+                           str(peer / settings), str(est)], capture_output=True, text=True, cwd=peer)
+    line = next((l for l in proc.stdout.splitlines() if l.startswith("states:")), "")
+    if proc.returncode != 0 or not est.is_file():
+        raise RuntimeError(f"ORB-SLAM3 peer failed on {sequence.name}: {proc.stderr[-500:]}")
+    median = float(line.split("median")[1].split("ms")[0]) if "median" in line else float("nan")
+    report = evaluate_files(sequence / "groundtruth.txt", est)
+    return {"system": "ORB-SLAM3 (stock)", "sequence": sequence.name, "ate_rmse_m": report.ate.rmse,
+            "tracked": report.ate.n_matched, "median_ms": {"total": median}, "states": line}
+
+
+def markdown_table(rows: list[dict]) -> str:
+    head = "| system | sequence | frames tracked | keyframes | ATE RMSE (m) | " + \
+           " | ".join(f"{m} ms" for m in MODULES) + " |"
+    lines = [head, "|" + "---|" * (5 + len(MODULES))]
+    for r in rows:
+        ms = " | ".join(f"{r['median_ms'][m]:.1f}" if m in r["median_ms"] else "–" for m in MODULES)
+        frames = f"{r['tracked']}/{r['frames']}" if "frames" in r else str(r.get("tracked", ""))
+        lines.append(f"| {r['system']} | {r['sequence']} | {frames} | {r.get('keyframes', '–')} | "
+                     f"{r['ate_rmse_m']:.4f} | {ms} |")
+    return "\n".join(lines)
+
+
+def aggregate(runs: list[dict]) -> dict:
+    """Median over repeats of ATE and of each module's median ms."""
+    out = dict(runs[0])
+    out["ate_rmse_m"] = float(np.median([r["ate_rmse_m"] for r in runs]))
+    out["median_ms"] = {m: float(np.median([r["median_ms"].get(m, 0.0) for r in runs])) for m in runs[0]["median_ms"]}
+    out["repeats"] = len(runs)
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("sequences", nargs="*", type=Path, default=DEFAULT_SEQUENCES)
+    parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--config", "-c", action="append", default=[])
+    parser.add_argument("--set", action="append", default=[])
+    parser.add_argument("--peer", metavar="PYTHON", help="python of a venv with pyorbslam3, to run ORB-SLAM3 too")
+    parser.add_argument("--output", "-o", type=Path, default=REPO / "results" / "benchmark")
+    parser.add_argument("--check", action="store_true", help="exit 1 if a target is missed")
+    args = parser.parse_args(argv)
+    missing = [s for s in args.sequences if not s.is_dir()]
+    if missing:
+        print(f"benchmark: sequence folder not found: {', '.join(map(str, missing))}", file=sys.stderr)
+        return 2
+    args.output.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for seq in args.sequences:
+        runs = [run_dynslam(seq, args.output / f"{seq.name}_run{i}", args.config, args.set) for i in range(args.repeats)]
+        rows.append(aggregate(runs))
+        if args.peer:
+            with tempfile.TemporaryDirectory() as tmp:
+                rows.append(run_peer(args.peer, seq, Path(tmp)))
+    table = markdown_table(rows)
+    stamp = time.strftime("%Y-%m-%d %H:%M")
+    (args.output / "benchmark.md").write_text(f"Benchmark {stamp}\n\n{table}\n")
+    (args.output / "benchmark.json").write_text(json.dumps(rows, indent=2) + "\n")
+    print(table)
+    return _check_targets(rows) if args.check else 0
+
+
+def _check_targets(rows: list[dict]) -> int:
+    failed = [f"{r['sequence']}: ATE {r['ate_rmse_m']:.4f} m > {TARGETS['ate_rmse_m']} m" for r in rows
+              if r["system"] == "dynslam" and "rpy" in r["sequence"] and r["ate_rmse_m"] > TARGETS["ate_rmse_m"]]
+    failed += [f"{r['sequence']}: median {r['median_ms']['total']:.1f} ms > {TARGETS['median_total_ms']} ms"
+               for r in rows if r["system"] == "dynslam" and r["median_ms"]["total"] > TARGETS["median_total_ms"]]
+    for line in failed:
+        print(f"target missed: {line}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
