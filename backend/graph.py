@@ -77,9 +77,8 @@ class FactorGraphBackend:
         isam_params.setRelinearizeThreshold(params.relinearize_threshold)
         isam_params.relinearizeSkip = params.relinearize_skip
         self._isam = gtsam.ISAM2(isam_params)
-        self._pending_graph = gtsam.NonlinearFactorGraph()
+        self._pending_factors: dict[int, gtsam.NonlinearFactor] = {}   # handle -> factor, until update()
         self._pending_values = gtsam.Values()
-        self._pending_handles: list[int] = []
         self._factor_index: dict[int, int] = {}     # handle -> iSAM2 factor index
         self._next_handle = 0
         self._keyframes: set[int] = set()
@@ -153,7 +152,14 @@ class FactorGraphBackend:
         return self._add_factor(gtsam.BetweenFactorPose3(X(kf_a), X(kf_b), pose3(T_ab), noise))
 
     def remove_factors(self, handles: Iterable[int]) -> None:
-        """Remove factors added earlier (by their handles) in one iSAM2 update."""
+        """Remove factors by their handles: pending ones are dropped, solved ones leave iSAM2 in
+        one update. An unknown handle is an error (it would otherwise hide a bookkeeping bug)."""
+        handles = list(handles)
+        unknown = [h for h in handles if h not in self._pending_factors and h not in self._factor_index]
+        if unknown:
+            raise BackendError(f"unknown factor handle(s) {unknown} (already removed?)")
+        for h in handles:
+            self._pending_factors.pop(h, None)
         indices = [self._factor_index.pop(h) for h in handles if h in self._factor_index]
         if indices:
             self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), indices)
@@ -161,9 +167,11 @@ class FactorGraphBackend:
 
     # --- solving --------------------------------------------------------------------------------
     def update(self, extra_updates: Optional[int] = None) -> None:
-        graph, values, handles = self._pending_graph, self._pending_values, self._pending_handles
-        self._pending_graph, self._pending_values, self._pending_handles = \
-            gtsam.NonlinearFactorGraph(), gtsam.Values(), []
+        graph = gtsam.NonlinearFactorGraph()
+        handles = list(self._pending_factors)
+        for handle in handles:
+            graph.add(self._pending_factors[handle])
+        values, self._pending_values, self._pending_factors = self._pending_values, gtsam.Values(), {}
         result = self._run_update(graph, values, [])
         for handle, index in zip(handles, result.getNewFactorsIndices()):
             self._factor_index[handle] = index
@@ -217,10 +225,9 @@ class FactorGraphBackend:
             raise BackendError(f"unknown landmark {lm_id}: add_landmark() it first")
 
     def _add_factor(self, factor) -> int:
-        self._pending_graph.add(factor)
         handle = self._next_handle
         self._next_handle += 1
-        self._pending_handles.append(handle)
+        self._pending_factors[handle] = factor
         return handle
 
     def _dynamic_inflation(self, p: float) -> float:

@@ -46,7 +46,8 @@ class RunSummary:
     timing_ms: dict[str, dict[str, float]] = field(default_factory=dict)
     ate_rmse_m: Optional[float] = None
     lost_frames: list[int] = field(default_factory=list)
-    skipped_files: list[str] = field(default_factory=list)
+    skipped_files: list[str] = field(default_factory=list)    # unreadable or corrupt, found while running
+    missing_files: list[str] = field(default_factory=list)    # listed but absent, found when opening
     interrupted: bool = False
 
     def to_dict(self) -> dict[str, Any]:
@@ -119,7 +120,8 @@ class Pipeline:
         self.summary.keyframes = self.system.num_keyframes
         self.summary.landmarks = self.system.num_landmarks
         self.summary.timing_ms = self.system.timer.summary()
-        self.summary.skipped_files = [str(p) for p, _ in getattr(self.dataset, "skipped", [])]
+        self.summary.skipped_files = [f"{p}: {why}" for p, why in getattr(self.dataset, "skipped", [])]
+        self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
 
     def _run_evaluation(self) -> None:
         gt = self.dataset.groundtruth()

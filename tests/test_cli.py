@@ -52,6 +52,16 @@ def test_dynslam_help_in_a_subprocess():
         assert command in proc.stdout
 
 
+def test_help_imports_no_heavy_modules():
+    """``dynslam --help`` must stay instant: the heavy libraries load inside the commands only."""
+    code = ("import sys\nfrom slam.cli import main\n"
+            "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "heavy = [m for m in ('gtsam', 'cv2', 'numpy', 'scipy', 'open3d', 'onnxruntime') if m in sys.modules]\n"
+            "assert not heavy, heavy")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+
+
 def test_config_prints_yaml_that_loads_back(capsys, tmp_path):
     code, out, _ = run_cli(capsys, "config")
     assert code == 0
