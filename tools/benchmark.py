@@ -68,14 +68,19 @@ def run_peer(python: str, sequence: Path, workdir: Path) -> dict:
 
 def markdown_table(rows: list[dict]) -> str:
     head = "| system | sequence | frames tracked | keyframes | ATE RMSE (m) | " + \
-           " | ".join(f"{m} ms" for m in MODULES) + " |"
-    lines = [head, "|" + "---|" * (5 + len(MODULES))]
+           " | ".join(f"{m} ms" for m in MODULES) + " | mean total ms | backend ms/keyframe |"
+    lines = [head, "|" + "---|" * (7 + len(MODULES))]
     for r in rows:
         ms = " | ".join(f"{r['median_ms'][m]:.1f}" if m in r["median_ms"] else "–" for m in MODULES)
         frames = f"{r['tracked']}/{r['frames']}" if "frames" in r else str(r.get("tracked", ""))
         lines.append(f"| {r['system']} | {r['sequence']} | {frames} | {r.get('keyframes', '–')} | "
-                     f"{r['ate_rmse_m']:.4f} | {ms} |")
+                     f"{r['ate_rmse_m']:.4f} | {ms} | {_num(r.get('mean_total_ms'))} | "
+                     f"{_num(r.get('backend_ms_per_keyframe'))} |")
     return "\n".join(lines)
+
+
+def _num(value) -> str:
+    return "–" if value is None else f"{value:.1f}"
 
 
 def aggregate(runs: list[dict]) -> dict:
@@ -83,6 +88,8 @@ def aggregate(runs: list[dict]) -> dict:
     out = dict(runs[0])
     out["ate_rmse_m"] = float(np.median([r["ate_rmse_m"] for r in runs]))
     out["median_ms"] = {m: float(np.median([r["median_ms"].get(m, 0.0) for r in runs])) for m in runs[0]["median_ms"]}
+    for key in ("mean_total_ms", "backend_ms_per_keyframe"):
+        out[key] = float(np.median([r[key] for r in runs]))
     out["repeats"] = len(runs)
     return out
 
