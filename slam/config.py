@@ -14,6 +14,8 @@ from typing import Any, Optional
 
 import yaml
 
+from slam.dynamic_config import DETECTOR_MODELS, FUSION_MODES, METHOD_NAMES, DynamicConfig
+
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
 
@@ -130,6 +132,7 @@ class SlamConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    dynamic: DynamicConfig = field(default_factory=DynamicConfig)
     seed: int = 0
     max_association_dt: float = 0.02
 
@@ -220,9 +223,29 @@ def validate(config: SlamConfig, source: str = "<config>") -> SlamConfig:
     if cam.min_depth >= cam.max_depth:
         raise ConfigError(f"{source}: 'camera.min_depth' ({cam.min_depth}) must be below "
                           f"'camera.max_depth' ({cam.max_depth})")
+    _validate_dynamic(config.dynamic, source)
     if config.orb.scale_factor <= 1.0:
         raise ConfigError(f"{source}: 'orb.scale_factor' must be > 1, got {config.orb.scale_factor}")
     return config
+
+
+def _validate_dynamic(dyn: DynamicConfig, source: str) -> None:
+    unknown = [m for m in dyn.methods if m not in METHOD_NAMES]
+    if unknown:
+        raise ConfigError(f"{source}: 'dynamic.methods' has unknown method(s) {unknown} "
+                          f"(valid: {', '.join(METHOD_NAMES)})")
+    if len(set(dyn.methods)) != len(dyn.methods):
+        raise ConfigError(f"{source}: 'dynamic.methods' lists a method twice: {dyn.methods}")
+    if dyn.fusion not in FUSION_MODES:
+        raise ConfigError(f"{source}: 'dynamic.fusion' must be one of {', '.join(FUSION_MODES)}, got '{dyn.fusion}'")
+    if dyn.fusion == "single" and len(dyn.methods) > 1:
+        raise ConfigError(f"{source}: 'dynamic.fusion' is 'single' but {len(dyn.methods)} methods are enabled")
+    if dyn.detector.model not in DETECTOR_MODELS:
+        raise ConfigError(f"{source}: 'dynamic.detector.model' must be one of {', '.join(DETECTOR_MODELS)}, "
+                          f"got '{dyn.detector.model}'")
+    for name in METHOD_NAMES:
+        if getattr(dyn, name).weight < 0:
+            raise ConfigError(f"{source}: 'dynamic.{name}.weight' must be >= 0")
 
 
 def resolve_config_path(name_or_path: str | Path) -> Path:

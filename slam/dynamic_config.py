@@ -1,0 +1,119 @@
+"""Typed configuration of the dynamic front end: detector, class groups, fusion and the four methods.
+
+Parameter defaults follow the papers in ``../shared/seeds`` (see ``docs/dynamic.md`` for where we
+deviate and why). Lives in ``slam`` so the config loader validates it with everything else.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+METHOD_NAMES = ("cpr", "box_depth", "flow_epipolar", "depth_sdf")
+FUSION_MODES = ("single", "max", "noisy_or")
+DETECTOR_MODELS = ("yolox_nano", "nanodet")
+
+
+@dataclass
+class DetectorConfig:
+    model: str = "yolox_nano"
+    # Empty: $DYNSLAM_DETECTOR_MODEL, else ../shared/models/<model file> beside the checkout.
+    path: str = ""
+    score_threshold: float = 0.3
+    nms_iou: float = 0.45
+    threads: int = 1
+    # Folder for per-sequence detection caches (empty = no cache).
+    cache_dir: str = ""
+
+
+@dataclass
+class ClassGroups:
+    """COCO class ids (0-based). Dynamic targets (PDT), high/low-probability passive movers."""
+
+    dynamic: list[int] = field(default_factory=lambda: [0, 15, 16, 17])          # person, cat, dog, horse
+    high_passive: list[int] = field(default_factory=lambda: [24, 25, 26, 28, 39, 41, 56, 63, 64, 65, 66, 67, 73])
+    low_passive: list[int] = field(default_factory=lambda: [57, 58, 59, 60, 62])
+    high_passive_prob: float = 0.8
+    low_passive_prob: float = 0.25
+
+
+@dataclass
+class CprConfig:
+    """Sub-point-cloud correlation (CPR-SLAM, seed 000)."""
+
+    weight: float = 1.0
+    sample_step: int = 4
+    max_depth: float = 6.0
+    voxel_size: float = 0.05
+    mls_radius: float = 0.1
+    clusters: int = 10
+    sigma_frame: int = 2
+    sigma_keyframe: int = 5
+    candidates: int = 10
+    student_nu: float = 5.0
+    icp_iterations: int = 10
+    mad_scale: float = 1.4826
+    circle_radius: int = 6
+    refine_window: int = 6
+    rho_keyframe: float = 3.0
+    rho_frame: float = 2.0
+    tau: float = 0.6
+    seed: int = 0
+
+
+@dataclass
+class BoxDepthConfig:
+    """Bounding box + depth continuity (Fang et al., seed 001)."""
+
+    weight: float = 1.0
+    omega_pixel: float = 0.05        # depth step (m) the flood fill may cross between neighbours
+    omega_pixel_passive: float = 0.1
+    height_ratio: float = 0.75
+    alpha: float = 1.0
+    omega: float = 0.01
+    k_passive: float = 1.0
+    reuse_radius_px: float = 3.0
+    reuse_gray: float = 10.0
+    reuse_depth: float = 0.05
+
+
+@dataclass
+class FlowEpipolarConfig:
+    """Optical flow + epipolar geometry + region probability (PPS-SLAM, seed 002)."""
+
+    weight: float = 1.0
+    epipolar_px: float = 2.0
+    sub_box_rows: int = 3
+    sub_box_cols: int = 3
+    region_ratio: float = 0.5
+    grid: int = 10
+    history: int = 10
+    cover_ratio: float = 0.65
+    likelihood_dynamic: float = 0.9
+    likelihood_static: float = 0.1
+    remove_threshold: float = 0.5
+    detector_score: float = 0.6
+    seed: int = 0
+
+
+@dataclass
+class DepthSdfConfig:
+    """Depth standard-deviation fitting (CP-SLAM, seed 003)."""
+
+    weight: float = 1.0
+    iterations: int = 20
+    base_threshold: float = 0.02
+    seed: int = 0
+
+
+@dataclass
+class DynamicConfig:
+    # Any subset of METHOD_NAMES; empty = dynamic handling off (every feature static).
+    methods: list[str] = field(default_factory=list)
+    fusion: str = "noisy_or"
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    classes: ClassGroups = field(default_factory=ClassGroups)
+    cpr: CprConfig = field(default_factory=CprConfig)
+    box_depth: BoxDepthConfig = field(default_factory=BoxDepthConfig)
+    flow_epipolar: FlowEpipolarConfig = field(default_factory=FlowEpipolarConfig)
+    depth_sdf: DepthSdfConfig = field(default_factory=DepthSdfConfig)
+    # Optional folder for PNG mask overlays (empty = off).
+    dump_masks_dir: str = ""
