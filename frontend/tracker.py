@@ -91,6 +91,18 @@ class Tracker:
         self._remember(frame, T_cw, landmark_of_keypoint)
         self._velocity = None
 
+    @property
+    def last_T_cw(self) -> Optional[np.ndarray]:
+        return self._last_T_cw if self.state == TrackingState.OK else None
+
+    def predicted_T_cw(self) -> Optional[np.ndarray]:
+        """Constant-velocity prediction of the next frame's pose (None before init / when lost)."""
+        if self.state != TrackingState.OK or self._last_T_cw is None:
+            return None
+        if self._velocity is None:
+            return self._last_T_cw.copy()
+        return orthonormalize(self._velocity @ self._last_T_cw)
+
     def adopt_keyframe_landmarks(self, landmark_of_keypoint: np.ndarray) -> None:
         """The last frame became a keyframe and gained new landmarks: track against them too."""
         self._last_landmarks = landmark_of_keypoint.copy()
@@ -129,7 +141,7 @@ class Tracker:
 
     # --- step 1: constant velocity --------------------------------------------------------------
     def _track_motion_model(self, frame, source, eligible):
-        predicted = orthonormalize(self._velocity @ self._last_T_cw) if self._velocity is not None else self._last_T_cw
+        predicted = self.predicted_T_cw()
         points = self._last_frame_points(source)
         corr = None
         for radius in (self.cfg.motion_search_radius, 2 * self.cfg.motion_search_radius):

@@ -92,6 +92,17 @@ class FlowEpipolarConfig:
     remove_threshold: float = 0.5
     detector_score: float = 0.6
     seed: int = 0
+    # Not in the paper (see frontend/dynamic/flow_epipolar.py): LK window/levels, forward-backward
+    # check (px, 0 = off), RANSAC threshold for F, minimum tracks, F from points outside the boxes,
+    # grid prior without history, posterior clamp [c, 1 - c] so that cells never freeze at 0 or 1.
+    lk_window: int = 21
+    lk_levels: int = 3
+    fb_max_px: float = 1.0
+    ransac_px: float = 1.0
+    min_tracks: int = 15
+    f_outside_boxes: bool = True
+    initial_prior: float = 0.5
+    prob_clamp: float = 0.01
 
 
 @dataclass

@@ -49,6 +49,8 @@ class RunSummary:
     skipped_files: list[str] = field(default_factory=list)    # unreadable or corrupt, found while running
     missing_files: list[str] = field(default_factory=list)    # listed but absent, found when opening
     interrupted: bool = False
+    dynamic_methods: list[str] = field(default_factory=list)
+    dynamic_flagged: dict[str, dict[str, float]] = field(default_factory=dict)  # per method and fused
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -62,7 +64,7 @@ class Pipeline:
         self.output_dir = Path(output_dir)
         self.max_frames = max_frames
         self.progress = progress
-        self.system = System(config)
+        self.system = System(config, sequence_name=getattr(dataset, "name", ""))
         self.summary = RunSummary(dataset=getattr(dataset, "name", "dataset"), output_dir=str(self.output_dir))
         self.report: Optional[EvaluationReport] = None
 
@@ -76,6 +78,7 @@ class Pipeline:
             log.warning("interrupted: writing the results of the %d frames processed", self.summary.frames)
         finally:
             self.summary.wall_time_s = time.perf_counter() - start
+            self.system.close()
             self._write_result_poses()
         self._run_evaluation()
         self._write_summary()
@@ -120,6 +123,10 @@ class Pipeline:
         self.summary.keyframes = self.system.num_keyframes
         self.summary.landmarks = self.system.num_landmarks
         self.summary.timing_ms = self.system.timer.summary()
+        self.summary.dynamic_methods = list(self.config.dynamic.methods)
+        stats = getattr(self.system.dynamic_filter, "stats", None)
+        if stats is not None:
+            self.summary.dynamic_flagged = stats.summary()
         self.summary.skipped_files = [f"{p}: {why}" for p, why in getattr(self.dataset, "skipped", [])]
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
 

@@ -62,15 +62,15 @@ class _MapView:
 
 
 class System:
-    def __init__(self, config: SlamConfig, dynamic_filter: Optional[DynamicFilter] = None):
+    def __init__(self, config: SlamConfig, dynamic_filter: Optional[DynamicFilter] = None, sequence_name: str = ""):
         self.config = config
         self.camera = PinholeCamera.from_config(config.camera)
         self.extractor = OrbExtractor(config.orb, self.camera)
-        self.dynamic_filter = dynamic_filter or build_dynamic_filter(config)
+        self.timer = ModuleTimer()
+        self.dynamic_filter = dynamic_filter or build_dynamic_filter(config, self.camera, self.timer, sequence_name)
         self.tracker = Tracker(config.tracking, self.camera)
         self.mapper = LocalMapper(config.backend, config.keyframes, self.camera, config.tracking.dynamic_threshold)
         self._map_view = _MapView(self.mapper, config.tracking.local_keyframes, config.tracking.covisible_per_keyframe)
-        self.timer = ModuleTimer()
         self._frames: list[_FrameRecord] = []
         self._last_keyframe_frame = -1
         self._reference_kf = -1
@@ -83,13 +83,23 @@ class System:
             gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
             frame = self.extractor.extract(gray, depth, index, timestamp)
         with self.timer.measure("dynamic"):
-            frame.dynamic_prob = np.clip(self.dynamic_filter(frame, rgb, depth), 0.0, 1.0)
+            probs = self.dynamic_filter.process(frame, rgb, gray, depth, self.tracker.predicted_T_cw(),
+                                                self.tracker.last_T_cw)
+            frame.dynamic_prob = np.clip(np.nan_to_num(probs, nan=0.0), 0.0, 1.0)
         if self.tracker.state == TrackingState.NOT_INITIALIZED:
             output = self._initialize(frame)
         else:
             output = self._track(frame)
+        with self.timer.measure("dynamic"):
+            self.dynamic_filter.end_frame(None if output.T_wc is None else invert(output.T_wc), output.is_keyframe)
         self.timer.end_frame()
         return output
+
+    def close(self) -> None:
+        """Release what the components hold open (e.g. save the detection cache)."""
+        close = getattr(self.dynamic_filter, "close", None)
+        if callable(close):
+            close()
 
     @property
     def num_keyframes(self) -> int:

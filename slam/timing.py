@@ -22,9 +22,9 @@ class ModuleTimer:
             self._current[module] += (time.perf_counter() - start) * 1e3
 
     def end_frame(self) -> dict[str, float]:
-        """Close the current frame; 'total' is the sum of its modules."""
+        """Close the current frame; 'total' is the sum of its top-level modules ('a.b' is a part of 'a')."""
         frame = dict(self._current)
-        frame["total"] = sum(frame.values())
+        frame["total"] = sum(v for k, v in frame.items() if "." not in k)
         self._frames.append(frame)
         self._current = defaultdict(float)
         return frame

@@ -362,8 +362,11 @@ class DynamicAt:
     def __init__(self, indices):
         self.indices = set(indices)
 
-    def __call__(self, frame: FeatureFrame, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    def process(self, frame: FeatureFrame, rgb, gray, depth, predicted_T_cw, last_T_cw) -> np.ndarray:
         return np.full(len(frame), 1.0 if frame.index in self.indices else 0.0)
+
+    def end_frame(self, T_cw, is_keyframe) -> None:
+        pass
 
 
 def test_all_dynamic_frame_is_lost_not_given_a_pose(sequence, config):

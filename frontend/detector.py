@@ -1,0 +1,480 @@
+"""COCO object detectors (YOLOX-Nano, NanoDet-m) in ONNX, plus a per-sequence detection cache.
+
+The models and their exact pre/post-processing are described in ``../shared/models/README.md``:
+
+* ``yolox_nano`` (416x416): BGR raw 0..255, letterbox at the top-left padded with 114; output
+  ``[1, 3549, 85]`` = (x, y, log w, log h, obj, 80 class scores) for strides 8/16/32, decoded as
+  ``xy = (p + grid) * stride``, ``wh = exp(p) * stride``, ``score = obj * cls``.
+* ``nanodet`` (320x320): BGR normalised with mean/std, letterbox centred padded with 0; per stride a
+  class-score map ``[1, HW, 80]`` and a distance distribution ``[1, HW, 32]`` (left, top, right,
+  bottom x 8 bins: softmax, expectation, times stride) measured from the cell centres
+  ``(i + 0.5) * stride``.
+
+Both models have sigmoids applied inside and no NMS: every (anchor, class) pair whose score reaches
+``score_threshold`` becomes a candidate (multi-label, as the upstream ONNX demos do), followed by
+per-class NMS and clipping to the image. Decoding is vectorised; the grids are built once.
+
+``CachedDetector`` stores the boxes per frame timestamp in a compressed ``.npz`` so repeated runs on
+the same sequence skip the network; ``build_detector`` wires config, model path and cache together.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Iterable, Optional
+
+import cv2
+import numpy as np
+
+from frontend.dynamic.base import Detection, Detector
+from slam.dynamic_config import ClassGroups, DetectorConfig
+
+ENV_MODEL = "DYNSLAM_DETECTOR_MODEL"
+MODEL_FILES = {"yolox_nano": "yolox_nano_416.onnx", "nanodet": "nanodet_m_320.onnx"}
+_INPUT_SIZE = {"yolox_nano": 416, "nanodet": 320}
+_STRIDES = (8, 16, 32)
+_NANODET_MEAN = np.array([103.53, 116.28, 123.675], dtype=np.float32)
+_NANODET_STD = np.array([57.375, 57.12, 58.395], dtype=np.float32)
+_NANODET_BINS = 8
+_YOLOX_PAD = 114.0
+
+
+class DetectorError(RuntimeError):
+    """The detector model cannot be loaded or run (missing/corrupt file, wrong model kind)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Model path resolution
+
+
+def default_model_dir() -> Path:
+    """``<checkout>/../shared/models``."""
+    return Path(__file__).resolve().parents[1].parent / "shared" / "models"
+
+
+def resolve_model_path(cfg: DetectorConfig) -> Path:
+    """``cfg.path`` if set, else ``$DYNSLAM_DETECTOR_MODEL``, else ``../shared/models/<model file>``
+    beside the checkout. The file is not checked here (``OnnxDetector`` does that)."""
+    if cfg.model not in MODEL_FILES:
+        raise DetectorError(f"unknown detector model '{cfg.model}' (expected one of {', '.join(MODEL_FILES)})")
+    if cfg.path:
+        return Path(cfg.path).expanduser()
+    env = os.environ.get(ENV_MODEL, "").strip()
+    if env:
+        return Path(env).expanduser()
+    return default_model_dir() / MODEL_FILES[cfg.model]
+
+
+def _howto(kind: str) -> str:
+    return (f"set 'dynamic.detector.path' in the config or the environment variable {ENV_MODEL} to the "
+            f"{MODEL_FILES.get(kind, 'ONNX model')} file (see shared/models/README.md), or disable the "
+            f"methods that need a detector")
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry helpers (public for tests)
+
+
+def letterbox_params(h: int, w: int, size: int, centred: bool) -> tuple[float, int, int, int, int]:
+    """Scale ``r`` and the placement (new_w, new_h, left, top) of an h x w image in a size x size input."""
+    r = min(size / h, size / w)
+    nw, nh = int(round(w * r)), int(round(h * r))
+    nw, nh = min(max(nw, 1), size), min(max(nh, 1), size)
+    if centred:
+        left, top = (size - nw) // 2, (size - nh) // 2
+    else:
+        left, top = 0, 0
+    return r, nw, nh, left, top
+
+
+def boxes_to_input(boxes: np.ndarray, r: float, left: float, top: float) -> np.ndarray:
+    """Image pixel boxes (N,4 x0 y0 x1 y1) -> network input pixels."""
+    out = np.asarray(boxes, dtype=np.float64) * r
+    out[:, [0, 2]] += left
+    out[:, [1, 3]] += top
+    return out
+
+
+def boxes_from_input(boxes: np.ndarray, r: float, left: float, top: float) -> np.ndarray:
+    """Network input pixel boxes (N,4 x0 y0 x1 y1) -> image pixels (inverse of ``boxes_to_input``)."""
+    out = np.array(boxes, dtype=np.float64, copy=True)
+    out[:, [0, 2]] -= left
+    out[:, [1, 3]] -= top
+    return out / r
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU matrix between boxes a (N,4) and b (M,4), x0 y0 x1 y1."""
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
+    ix0 = np.maximum(a[:, None, 0], b[None, :, 0])
+    iy0 = np.maximum(a[:, None, 1], b[None, :, 1])
+    ix1 = np.minimum(a[:, None, 2], b[None, :, 2])
+    iy1 = np.minimum(a[:, None, 3], b[None, :, 3])
+    inter = np.clip(ix1 - ix0, 0, None) * np.clip(iy1 - iy0, 0, None)
+    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
+    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
+    union = area_a[:, None] + area_b[None, :] - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+def nms_numpy(boxes: np.ndarray, scores: np.ndarray, class_ids: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Per-class greedy NMS (boxes of different classes never suppress each other).
+
+    Classes are separated by offsetting each class's boxes far apart (the batched-NMS trick), so one
+    greedy pass serves all classes. Returns kept indices sorted by descending score.
+    """
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if boxes.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    span = float(np.max(np.abs(boxes))) + 1.0
+    shifted = boxes + (np.asarray(class_ids, dtype=np.float64) * 2.0 * span)[:, None]
+    order = np.argsort(-scores, kind="stable")
+    x0, y0, x1, y1 = shifted[:, 0], shifted[:, 1], shifted[:, 2], shifted[:, 3]
+    area = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
+    keep = []
+    while order.size:
+        i = order[0]
+        keep.append(i)
+        rest = order[1:]
+        w = np.clip(np.minimum(x1[i], x1[rest]) - np.maximum(x0[i], x0[rest]), 0, None)
+        h = np.clip(np.minimum(y1[i], y1[rest]) - np.maximum(y0[i], y0[rest]), 0, None)
+        inter = w * h
+        union = area[i] + area[rest] - inter
+        iou = np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+        order = rest[iou <= iou_threshold]
+    return np.asarray(keep, dtype=np.int64)
+
+
+def nms_per_class(boxes: np.ndarray, scores: np.ndarray, class_ids: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Per-class NMS: OpenCV's ``NMSBoxesBatched`` when present, else ``nms_numpy``.
+    Returns kept indices sorted by descending score."""
+    n = len(scores)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    if n == 1:
+        return np.zeros(1, dtype=np.int64)
+    batched = getattr(cv2.dnn, "NMSBoxesBatched", None)
+    if batched is not None:
+        b = np.asarray(boxes, dtype=np.float64)
+        xywh = np.stack([b[:, 0], b[:, 1], b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]], axis=1)
+        try:
+            idx = batched(xywh.tolist(), np.asarray(scores, dtype=np.float32).tolist(),
+                          np.asarray(class_ids, dtype=np.int32).tolist(), -np.inf, float(iou_threshold))
+            idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+            return idx[np.argsort(-np.asarray(scores)[idx], kind="stable")]
+        except cv2.error:  # pragma: no cover - fall back on any OpenCV binding quirk
+            pass
+    return nms_numpy(boxes, scores, class_ids, iou_threshold)
+
+
+# --------------------------------------------------------------------------------------------
+# ONNX detector
+
+
+class OnnxDetector:
+    """YOLOX-Nano or NanoDet-m on onnxruntime's CPU provider.
+
+    ``detect(bgr)`` returns the boxes in raw image pixels, clipped to the image, sorted by score,
+    restricted to ``class_filter`` (COCO ids) when given.
+    """
+
+    def __init__(self, model_path, kind: str = "yolox_nano", score_threshold: float = 0.3,
+                 nms_iou: float = 0.45, threads: int = 1, class_filter: Optional[Iterable[int]] = None):
+        if kind not in MODEL_FILES:
+            raise DetectorError(f"unknown detector model '{kind}' (expected one of {', '.join(MODEL_FILES)})")
+        self.kind = kind
+        self.model_path = Path(model_path)
+        self.score_threshold = float(score_threshold)
+        self.nms_iou = float(nms_iou)
+        self.threads = max(1, int(threads))
+        self.size = _INPUT_SIZE[kind]
+        self.class_filter = None if class_filter is None else np.array(sorted(set(int(c) for c in class_filter)),
+                                                                         dtype=np.int64)
+        self._session = self._load()
+        inputs = self._session.get_inputs()
+        self._input_name = inputs[0].name
+        shape = list(inputs[0].shape)
+        if len(shape) != 4 or shape[2:] != [self.size, self.size]:
+            raise DetectorError(f"detector model {self.model_path} has input shape {shape}, expected "
+                                f"[1, 3, {self.size}, {self.size}] for '{kind}': is it the right file for "
+                                f"dynamic.detector.model? {_howto(kind)}")
+        self._output_names = self._pick_outputs()
+        self._priors = self._make_priors()
+        # Reused input buffer (H, W, 3) float32 in network layout before the transpose.
+        self._canvas = np.empty((self.size, self.size, 3), dtype=np.float32)
+
+    # -- loading ----------------------------------------------------------------------------------------
+
+    def _load(self):
+        path = self.model_path
+        if not path.is_file():
+            raise DetectorError(f"detector model file not found: {path}; {_howto(self.kind)}")
+        try:
+            import onnxruntime as ort
+        except ImportError as exc:  # pragma: no cover - dependency of the package
+            raise DetectorError(f"onnxruntime is not installed, cannot load detector model {path}") from exc
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = self.threads
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.log_severity_level = 3
+        try:
+            return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types for bad protobufs
+            raise DetectorError(f"cannot load detector model {path} (corrupt or not an ONNX model: "
+                                f"{type(exc).__name__}: {str(exc).strip()[:200]}); {_howto(self.kind)}") from exc
+
+    def _pick_outputs(self) -> list[str]:
+        names = [o.name for o in self._session.get_outputs()]
+        if self.kind == "yolox_nano":
+            if len(names) != 1:
+                raise DetectorError(f"detector model {self.model_path} has outputs {names}, expected one "
+                                    f"YOLOX output; {_howto(self.kind)}")
+            return names
+        ordered = []
+        for s in _STRIDES:
+            for prefix in ("cls_pred_stride_", "dis_pred_stride_"):
+                if f"{prefix}{s}" not in names:
+                    raise DetectorError(f"detector model {self.model_path} lacks output '{prefix}{s}' "
+                                        f"(outputs: {names}), expected NanoDet-m; {_howto(self.kind)}")
+                ordered.append(f"{prefix}{s}")
+        return ordered
+
+    def _make_priors(self):
+        """Per-anchor (x, y, stride) for all strides, row-major per stride."""
+        grids = []
+        for s in _STRIDES:
+            n = self.size // s
+            ys, xs = np.meshgrid(np.arange(n, dtype=np.float32), np.arange(n, dtype=np.float32), indexing="ij")
+            grid = np.stack([xs.ravel(), ys.ravel(), np.full(n * n, s, dtype=np.float32)], axis=1)
+            if self.kind == "nanodet":
+                grid[:, :2] = (grid[:, :2] + 0.5) * s   # cell centres in input pixels
+            grids.append(grid)
+        return np.concatenate(grids, axis=0)
+
+    def close(self) -> None:
+        """Nothing to persist; present so every detector can be closed alike."""
+
+    def save(self) -> None:
+        """Nothing to persist; present so every detector can be saved alike."""
+
+    # -- inference ----------------------------------------------------------------------------------------
+
+    def preprocess(self, bgr: np.ndarray) -> tuple[np.ndarray, float, int, int]:
+        """Network input (1,3,S,S) float32 and the letterbox (r, left, top)."""
+        if bgr.ndim == 2:
+            bgr = cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR)
+        elif bgr.shape[2] == 4:
+            bgr = cv2.cvtColor(bgr, cv2.COLOR_BGRA2BGR)
+        h, w = bgr.shape[:2]
+        centred = self.kind == "nanodet"
+        r, nw, nh, left, top = letterbox_params(h, w, self.size, centred)
+        resized = cv2.resize(bgr, (nw, nh), interpolation=cv2.INTER_LINEAR)
+        canvas = self._canvas
+        if self.kind == "yolox_nano":
+            canvas.fill(_YOLOX_PAD)
+            canvas[top:top + nh, left:left + nw] = resized
+        else:
+            canvas.fill(0.0)  # padding 0 after normalisation
+            canvas[top:top + nh, left:left + nw] = (resized.astype(np.float32) - _NANODET_MEAN) / _NANODET_STD
+        blob = np.ascontiguousarray(canvas.transpose(2, 0, 1))[None]
+        return blob, r, left, top
+
+    @staticmethod
+    def _nanodet_boxes(dis: np.ndarray, pri: np.ndarray) -> np.ndarray:
+        d = dis.reshape(-1, 4, _NANODET_BINS)
+        d = np.exp(d - d.max(axis=2, keepdims=True))
+        d /= d.sum(axis=2, keepdims=True)
+        dist = (d @ np.arange(_NANODET_BINS, dtype=np.float32)) * pri[:, 2:3]   # (A,4) l, t, r, b
+        return np.concatenate([pri[:, :2] - dist[:, :2], pri[:, :2] + dist[:, 2:]], axis=1)
+
+    def detect(self, bgr: np.ndarray, timestamp: float = 0.0) -> list[Detection]:
+        boxes, scores, classes = self.detect_arrays(bgr)
+        return [Detection(float(b[0]), float(b[1]), float(b[2]), float(b[3]), int(c), float(s))
+                for b, s, c in zip(boxes, scores, classes)]
+
+    def detect_arrays(self, bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Like ``detect`` but as arrays: boxes (N,4) float64 x0 y0 x1 y1, scores (N,), class ids (N,)."""
+        h, w = bgr.shape[:2]
+        blob, r, left, top = self.preprocess(bgr)
+        outputs = self._session.run(self._output_names, {self._input_name: blob})
+        if self.kind == "yolox_nano":
+            # Threshold on the objectness first: the score is obj*cls <= obj, so this is exact and
+            # spares the decoding of almost every anchor.
+            p = outputs[0].reshape(-1, outputs[0].shape[-1])
+            sel = np.flatnonzero(p[:, 4] >= self.score_threshold)
+            pri = self._priors[sel]
+            p = p[sel]
+            stride = pri[:, 2:3]
+            xy = (p[:, :2] + pri[:, :2]) * stride
+            wh = np.exp(np.minimum(p[:, 2:4], 20.0)) * stride
+            anchor_boxes = np.concatenate([xy - 0.5 * wh, xy + 0.5 * wh], axis=1)
+            anchor_scores = p[:, 4:5] * p[:, 5:]
+        else:
+            cls = np.concatenate([o.reshape(-1, o.shape[-1]) for o in outputs[0::2]], axis=0)
+            sel = np.flatnonzero(cls.max(axis=1) >= self.score_threshold)
+            dis = np.concatenate([o.reshape(-1, o.shape[-1]) for o in outputs[1::2]], axis=0)[sel]
+            anchor_boxes = self._nanodet_boxes(dis, self._priors[sel])
+            anchor_scores = cls[sel]
+        if self.class_filter is not None:
+            cols = self.class_filter[self.class_filter < anchor_scores.shape[1]]
+            anchor_scores = anchor_scores[:, cols]
+        else:
+            cols = None
+        a_idx, c_idx = np.nonzero(anchor_scores >= self.score_threshold)   # multi-label candidates
+        if a_idx.size == 0:
+            return np.zeros((0, 4)), np.zeros(0), np.zeros(0, dtype=np.int64)
+        scores = anchor_scores[a_idx, c_idx].astype(np.float64)
+        classes = (cols[c_idx] if cols is not None else c_idx).astype(np.int64)
+        boxes = boxes_from_input(anchor_boxes[a_idx], r, left, top)
+        boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0.0, float(w))
+        boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0.0, float(h))
+        valid = (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
+        boxes, scores, classes = boxes[valid], scores[valid], classes[valid]
+        keep = nms_per_class(boxes, scores, classes, self.nms_iou)
+        return boxes[keep], scores[keep], classes[keep]
+
+    def __repr__(self) -> str:
+        return (f"OnnxDetector(kind={self.kind!r}, path={str(self.model_path)!r}, "
+                f"score_threshold={self.score_threshold}, nms_iou={self.nms_iou}, threads={self.threads})")
+
+
+# --------------------------------------------------------------------------------------------
+# Cache
+
+
+def _ts_key(timestamp: float) -> str:
+    return "%.6f" % float(timestamp)
+
+
+def cache_path_for(cache_dir, sequence_name: str, cfg: DetectorConfig,
+                   class_filter: Optional[Iterable[int]] = None) -> Path:
+    """``<cache_dir>/<sequence>__<model>_s<score>_n<nms>[_c<classes hash>].npz``: settings that change
+    the boxes are part of the name so different settings never share a cache."""
+    seq = re.sub(r"[^A-Za-z0-9_.-]+", "_", sequence_name.strip()).strip("._") or "sequence"
+    name = f"{seq}__{cfg.model}_s{cfg.score_threshold:.3f}_n{cfg.nms_iou:.3f}"
+    if class_filter is not None:
+        ids = ",".join(str(c) for c in sorted(set(int(c) for c in class_filter)))
+        name += "_c" + hashlib.sha1(ids.encode()).hexdigest()[:8]
+    return Path(cache_dir).expanduser() / f"{name}.npz"
+
+
+class CachedDetector:
+    """Detections per frame, keyed by the timestamp ('%.6f'), backed by a compressed ``.npz``.
+
+    Loads the file on construction when present (a corrupt file is reported with a warning and
+    ignored: the boxes are recomputed and the file rewritten on ``save``). ``save()`` writes
+    atomically (temporary file in the same folder, then ``os.replace``) and only when something new
+    was computed. Frames must have distinct timestamps.
+    """
+
+    def __init__(self, inner: Detector, cache_file):
+        self.inner = inner
+        self.cache_file = Path(cache_file)
+        self._entries: dict[str, np.ndarray] = {}   # key -> (N,6) x0 y0 x1 y1 score class
+        self._dirty = False
+        self.hits = 0
+        self.misses = 0
+        self._load()
+
+    def _load(self) -> None:
+        if not self.cache_file.exists():
+            return
+        try:
+            with np.load(self.cache_file, allow_pickle=False) as data:
+                keys = data["keys"]
+                counts = data["counts"].astype(np.int64)
+                rows = data["rows"].astype(np.float64)
+            if keys.ndim != 1 or counts.shape != keys.shape or rows.ndim != 2 or rows.shape[1] != 6 \
+                    or int(counts.sum()) != rows.shape[0] or np.any(counts < 0):
+                raise ValueError("inconsistent arrays")
+            ends = np.cumsum(counts)
+            entries = {}
+            for key, end, n in zip(keys.tolist(), ends.tolist(), counts.tolist()):
+                entries[str(key)] = rows[end - n:end]
+            self._entries = entries
+        except Exception as exc:  # any unreadable file: recompute rather than crash
+            warnings.warn(f"detection cache {self.cache_file} is unreadable ({type(exc).__name__}: {exc}); "
+                          f"ignoring it, detections will be recomputed and the file rewritten", RuntimeWarning,
+                          stacklevel=3)
+            self._entries = {}
+            self._dirty = True
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, timestamp: float) -> bool:
+        return _ts_key(timestamp) in self._entries
+
+    def detect(self, bgr: np.ndarray, timestamp: float = 0.0) -> list[Detection]:
+        key = _ts_key(timestamp)
+        rows = self._entries.get(key)
+        if rows is None:
+            self.misses += 1
+            dets = list(self.inner.detect(bgr, timestamp))
+            rows = np.array([[d.x0, d.y0, d.x1, d.y1, d.score, d.class_id] for d in dets],
+                            dtype=np.float64).reshape(-1, 6)
+            self._entries[key] = rows
+            self._dirty = True
+            return dets
+        self.hits += 1
+        return [Detection(float(r[0]), float(r[1]), float(r[2]), float(r[3]), int(r[5]), float(r[4])) for r in rows]
+
+    def save(self) -> None:
+        if not self._dirty:
+            return
+        keys = sorted(self._entries)
+        counts = np.array([len(self._entries[k]) for k in keys], dtype=np.int64)
+        rows = (np.concatenate([self._entries[k] for k in keys], axis=0) if keys else np.zeros((0, 6)))
+        self.cache_file.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=self.cache_file.name + ".", suffix=".tmp", dir=self.cache_file.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez_compressed(fh, keys=np.array(keys, dtype=np.str_), counts=counts,
+                                    rows=rows.astype(np.float64))
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, self.cache_file)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise
+        self._dirty = False
+
+    def close(self) -> None:
+        self.save()
+        close = getattr(self.inner, "close", None)
+        if callable(close):
+            close()
+
+    def __repr__(self) -> str:
+        return f"CachedDetector({self.inner!r}, cache_file={str(self.cache_file)!r}, entries={len(self)})"
+
+
+# --------------------------------------------------------------------------------------------
+# Factory
+
+
+def class_filter_of(classes: ClassGroups) -> list[int]:
+    """Union of the dynamic, high- and low-probability passive class ids."""
+    return sorted(set(int(c) for c in (*classes.dynamic, *classes.high_passive, *classes.low_passive)))
+
+
+def build_detector(cfg: DetectorConfig, classes: ClassGroups, sequence_name: str = ""):
+    """The ONNX detector for ``cfg`` keeping only the configured classes, wrapped in a
+    ``CachedDetector`` when ``cfg.cache_dir`` is set. Both have ``save()`` and ``close()``."""
+    class_filter = class_filter_of(classes)
+    detector = OnnxDetector(resolve_model_path(cfg), kind=cfg.model, score_threshold=cfg.score_threshold,
+                            nms_iou=cfg.nms_iou, threads=cfg.threads, class_filter=class_filter)
+    if cfg.cache_dir:
+        return CachedDetector(detector, cache_path_for(cfg.cache_dir, sequence_name, cfg, class_filter))
+    return detector

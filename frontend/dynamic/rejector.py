@@ -1,0 +1,111 @@
+"""Runs the detector (when a method needs it) and the enabled methods, then fuses their outputs.
+
+Keeps per-method diagnostics: how many features each method flagged per frame, the fused count,
+and per-method milliseconds (recorded in the System's timer as ``dynamic.<name>``). Optionally
+dumps PNG overlays of each method's mask and the fused features, so a person can see what was
+rejected.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput
+from frontend.dynamic.fusion import fuse
+from slam.camera import PinholeCamera
+from slam.dynamic_config import DynamicConfig
+from slam.frame import FeatureFrame
+from slam.timing import ModuleTimer
+
+
+@dataclass
+class DynamicStats:
+    frames: int = 0
+    flagged: dict[str, list[int]] = field(default_factory=dict)   # method -> per-frame counts ("fused" too)
+
+    def add(self, name: str, count: int) -> None:
+        self.flagged.setdefault(name, []).append(count)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        return {name: {"mean_flagged": float(np.mean(c)), "max_flagged": int(np.max(c)),
+                       "frames_with_flags": int(np.count_nonzero(c))} for name, c in self.flagged.items() if c}
+
+
+class DynamicRejector:
+    def __init__(self, cfg: DynamicConfig, camera: PinholeCamera, methods: list[DynamicMethod],
+                 detector: Optional[Detector], timer: Optional[ModuleTimer] = None):
+        self.cfg = cfg
+        self.camera = camera
+        self.methods = methods
+        self.detector = detector
+        self.timer = timer or ModuleTimer()
+        self.name = "+".join(m.name for m in methods)
+        self.stats = DynamicStats()
+        self._weights = [getattr(cfg, m.name).weight for m in methods]
+        self._last: Optional[tuple[DynamicContext, dict[str, MethodOutput]]] = None
+        self._dump_dir = Path(cfg.dump_masks_dir) if cfg.dump_masks_dir else None
+
+    def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
+                predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
+        ctx = DynamicContext(frame, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
+        if self.detector is not None and any(m.needs_detector for m in self.methods):
+            with self.timer.measure("dynamic.detector"):
+                ctx.detections = self.detector.detect(rgb, frame.timestamp)
+        outputs: dict[str, MethodOutput] = {}
+        for method in self.methods:
+            with self.timer.measure(f"dynamic.{method.name}"):
+                outputs[method.name] = method.process(ctx)
+            self.stats.add(method.name, outputs[method.name].flagged)
+        fused = fuse([o.prob for o in outputs.values()], self._weights, self.cfg.fusion, len(frame))
+        self.stats.frames += 1
+        self.stats.add("fused", int(np.sum(fused >= 0.5)))
+        self._last = (ctx, outputs)
+        if self._dump_dir is not None:
+            self._dump(ctx, outputs, fused)
+        return fused
+
+    def end_frame(self, T_cw: Optional[np.ndarray], is_keyframe: bool) -> None:
+        if self._last is None:
+            return
+        ctx, outputs = self._last
+        for method in self.methods:
+            with self.timer.measure(f"dynamic.{method.name}"):
+                method.end_frame(ctx, outputs[method.name], T_cw, is_keyframe)
+        self._last = None
+
+    def close(self) -> None:
+        """Persist what is worth keeping (the detection cache)."""
+        save = getattr(self.detector, "save", None)
+        if callable(save):
+            save()
+
+    def _dump(self, ctx: DynamicContext, outputs: dict[str, MethodOutput], fused: np.ndarray) -> None:
+        self._dump_dir.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(self._dump_dir / f"{ctx.frame.index:06d}.png"), overlay(ctx, outputs, fused))
+
+
+_COLOURS = [(0, 0, 255), (0, 200, 255), (255, 0, 255), (255, 128, 0)]
+
+
+def overlay(ctx: DynamicContext, outputs: dict[str, MethodOutput], fused: np.ndarray) -> np.ndarray:
+    """The frame with each method's mask tinted, detection boxes, and features coloured by the
+    fused probability (green static, red dynamic)."""
+    image = ctx.rgb.copy()
+    for colour, (name, out) in zip(_COLOURS, outputs.items()):
+        if out.mask is not None and np.any(out.mask):
+            tint = np.zeros_like(image)
+            tint[np.asarray(out.mask) > 0.5] = colour
+            image = cv2.addWeighted(image, 1.0, tint, 0.35, 0)
+    for det in ctx.detections or []:
+        cv2.rectangle(image, (int(det.x0), int(det.y0)), (int(det.x1), int(det.y1)), (255, 255, 255), 1)
+    for (x, y), p in zip(np.rint(ctx.frame.uv_raw).astype(int), fused):
+        cv2.circle(image, (int(x), int(y)), 2, (0, int(255 * (1 - p)), int(255 * p)), -1)
+    y = 16
+    for colour, name in zip(_COLOURS, outputs):
+        cv2.putText(image, f"{name}: {outputs[name].flagged}", (8, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1)
+        y += 16
+    return image
