@@ -66,6 +66,14 @@ class LocalMapper:
         np.add.at(lm.visible, visible_ids[(visible_ids >= 0) & (visible_ids < len(lm))], 1)
         np.add.at(lm.found, found_ids[(found_ids >= 0) & (found_ids < len(lm))], 1)
 
+    def record_dynamic_evidence(self, landmark_ids: np.ndarray, probs: np.ndarray) -> None:
+        """Landmarks matched to features judged dynamic: the evidence stays with the landmark
+        across frames, and a landmark that is persistently dynamic is culled."""
+        lm = self.map.landmarks
+        ok = (landmark_ids >= 0) & (landmark_ids < len(lm))
+        np.add.at(lm.dynamic_sum, landmark_ids[ok], probs[ok])
+        np.add.at(lm.dynamic_hits, landmark_ids[ok], 1)
+
     # --- observations and promotion ----------------------------------------------------------------
     def _add_observations(self, kf_id: int, frame: FeatureFrame, lm_of_kp: np.ndarray) -> int:
         kp = np.flatnonzero(lm_of_kp >= 0)
@@ -118,6 +126,7 @@ class LocalMapper:
             xyz=local @ T_wc[:3, :3].T + T_wc[:3, 3], local_xyz=local, descriptors=frame.descriptors[kp],
             octave=frame.octaves[kp], anchor_kf=np.full(n, kf_id), n_obs=np.zeros(n, np.int32),
             visible=np.ones(n, np.int32), found=np.ones(n, np.int32), dynamic_sum=np.zeros(n),
+            dynamic_hits=np.zeros(n, np.int32),
             bad=np.zeros(n, bool), in_graph=np.zeros(n, bool))
         lm_of_kp[kp] = ids
         self._record_observations(kf_id, frame, kp, ids)
@@ -139,8 +148,9 @@ class LocalMapper:
         rarely_found = lm.found < cfg.cull_found_ratio * lm.visible
         age = kf_id - lm.anchor_kf
         unconfirmed = (age >= cfg.cull_after_keyframes) & (lm.n_obs < cfg.cull_min_observations)
-        mean_dynamic = lm.dynamic_sum / np.maximum(lm.n_obs, 1)
-        dynamic = mean_dynamic >= cfg.dynamic_removal_threshold
+        # Mean dynamic probability over keyframe observations and dynamic matches while tracking.
+        mean_dynamic = lm.dynamic_sum / np.maximum(lm.n_obs + lm.dynamic_hits, 1)
+        dynamic = (mean_dynamic >= cfg.dynamic_removal_threshold) & (lm.n_obs + lm.dynamic_hits >= 2)
         cull = alive & (rarely_found | unconfirmed | dynamic)
         lm.bad[cull] = True
         return int(cull.sum())

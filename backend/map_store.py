@@ -51,6 +51,7 @@ def landmark_table() -> GrowableTable:
         "xyz": ((3,), np.float64), "local_xyz": ((3,), np.float64), "descriptors": ((32,), np.uint8),
         "octave": ((), np.int32), "anchor_kf": ((), np.int64), "n_obs": ((), np.int32),
         "visible": ((), np.int32), "found": ((), np.int32), "dynamic_sum": ((), np.float64),
+        "dynamic_hits": ((), np.int32),
         "bad": ((), np.bool_), "in_graph": ((), np.bool_),
     })
 

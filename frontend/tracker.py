@@ -53,6 +53,10 @@ class TrackingResult:
     n_inliers: int = 0
     visible_landmarks: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     method: str = ""
+    # Landmarks that matched features judged dynamic (kept out of the pose), with those features'
+    # probabilities: evidence that the landmark sits on something moving.
+    dynamic_landmarks: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    dynamic_probs: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass
@@ -118,8 +122,8 @@ class Tracker:
             method = "descriptors"
         if corr is None:
             return self._lose(frame)
-        T_cw, corr, visible = self._track_local_map(frame, source, eligible, T_cw, corr,
-                                                    wide=(method != "motion"))
+        T_cw, corr, visible, local = self._track_local_map(frame, source, eligible, T_cw, corr,
+                                                           wide=(method != "motion"))
         landmark_inliers = int((corr.point_ids >= 0).sum())
         if landmark_inliers < self.cfg.min_tracked_inliers:
             return self._lose(frame)
@@ -129,7 +133,19 @@ class Tracker:
         self._velocity = orthonormalize(T_cw @ invert(self._last_T_cw)) if self._last_T_cw is not None else None
         self.state = TrackingState.OK
         self._remember(frame, T_cw, lm_of_kp)
-        return TrackingResult(TrackingState.OK, T_cw, lm_of_kp, landmark_inliers, visible, method)
+        dyn_ids, dyn_probs = self._dynamic_evidence(frame, local, T_cw, eligible, corr.point_ids)
+        return TrackingResult(TrackingState.OK, T_cw, lm_of_kp, landmark_inliers, visible, method, dyn_ids, dyn_probs)
+
+    def _dynamic_evidence(self, frame, local: MapPoints, T_cw, eligible, used_ids):
+        """Match local landmarks to the features kept out as dynamic (they never move the pose)."""
+        dynamic = ~eligible
+        if not dynamic.any() or len(local) == 0:
+            return np.zeros(0, np.int64), np.zeros(0)
+        candidates = local.subset(~np.isin(local.ids, used_ids))
+        matches = search_by_projection(frame, candidates, T_cw, self.camera, self.cfg.local_map_search_radius,
+                                       self.cfg.strict_descriptor_distance, self.cfg.match_ratio, dynamic)
+        hit = matches.keypoint_of_point >= 0
+        return candidates.ids[hit], frame.dynamic_prob[matches.keypoint_of_point[hit]]
 
     def _lose(self, frame: FeatureFrame) -> TrackingResult:
         self.state = TrackingState.LOST
@@ -218,7 +234,7 @@ class Tracker:
                                   np.vstack([corr.xyz, extra.xyz]))
         T_cw, merged = self._optimize(frame, T_cw, merged)
         visible = candidates.ids[matches.visible]
-        return T_cw, merged, np.union1d(visible, seeds)
+        return T_cw, merged, np.union1d(visible, seeds), local
 
     def _optimize(self, frame: FeatureFrame, T_cw: np.ndarray, corr: _Correspondences):
         """Pose-only optimisation; returns the pose and the inlier correspondences."""

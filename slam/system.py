@@ -153,6 +153,7 @@ class System:
         tracked_ids = result.landmark_of_keypoint[result.landmark_of_keypoint >= 0]
         with self.timer.measure("mapping"):
             self.mapper.record_tracking(result.visible_landmarks, tracked_ids)
+            self.mapper.record_dynamic_evidence(result.dynamic_landmarks, result.dynamic_probs)
             self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
             is_keyframe = self._decide_keyframe(frame, T_wc, result.landmark_of_keypoint, len(tracked_ids))
         if is_keyframe:
