@@ -206,8 +206,10 @@ class OnnxDetector:
                                 f"dynamic.detector.model? {_howto(kind)}")
         self._output_names = self._pick_outputs()
         self._priors = self._make_priors()
-        # Reused input buffer (H, W, 3) float32 in network layout before the transpose.
-        self._canvas = np.empty((self.size, self.size, 3), dtype=np.float32)
+        # Reused network input (1, 3, S, S); preprocess() returns this buffer.
+        self._blob = np.empty((1, 3, self.size, self.size), dtype=np.float32)
+        self._inv_std = (1.0 / _NANODET_STD).astype(np.float32)
+        self._mean_over_std = (_NANODET_MEAN / _NANODET_STD).astype(np.float32)
 
     # -- loading ----------------------------------------------------------------------------------------
 
@@ -268,7 +270,8 @@ class OnnxDetector:
     # -- inference ----------------------------------------------------------------------------------------
 
     def preprocess(self, bgr: np.ndarray) -> tuple[np.ndarray, float, int, int]:
-        """Network input (1,3,S,S) float32 and the letterbox (r, left, top)."""
+        """Network input (1,3,S,S) float32 (an internal buffer, overwritten by the next call) and the
+        letterbox (r, left, top): input pixel = image pixel * r + (left, top)."""
         if bgr.ndim == 2:
             bgr = cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR)
         elif bgr.shape[2] == 4:
@@ -277,14 +280,15 @@ class OnnxDetector:
         centred = self.kind == "nanodet"
         r, nw, nh, left, top = letterbox_params(h, w, self.size, centred)
         resized = cv2.resize(bgr, (nw, nh), interpolation=cv2.INTER_LINEAR)
-        canvas = self._canvas
-        if self.kind == "yolox_nano":
-            canvas.fill(_YOLOX_PAD)
-            canvas[top:top + nh, left:left + nw] = resized
-        else:
-            canvas.fill(0.0)  # padding 0 after normalisation
-            canvas[top:top + nh, left:left + nw] = (resized.astype(np.float32) - _NANODET_MEAN) / _NANODET_STD
-        blob = np.ascontiguousarray(canvas.transpose(2, 0, 1))[None]
+        blob = self._blob
+        blob.fill(_YOLOX_PAD if self.kind == "yolox_nano" else 0.0)   # NanoDet: 0 after normalisation
+        for c in range(3):   # write each channel straight into the planar input
+            plane = blob[0, c, top:top + nh, left:left + nw]
+            if self.kind == "yolox_nano":
+                plane[...] = resized[:, :, c]
+            else:
+                np.multiply(resized[:, :, c], self._inv_std[c], out=plane, casting="unsafe")
+                plane -= self._mean_over_std[c]
         return blob, r, left, top
 
     @staticmethod
