@@ -69,10 +69,12 @@ class BoxDepthConfig:
     height_ratio: float = 0.75
     alpha: float = 1.0
     omega: float = 0.01
-    k_passive: float = 1.0
+    k_passive: float = 5.0           # Eqs. 9/11 compare ratios >= 1 with K*p_pas: K must exceed 1/p_pas
     reuse_radius_px: float = 3.0
     reuse_gray: float = 10.0
     reuse_depth: float = 0.05
+    reuse_prob: float = 0.3          # probability given to effective (reused) dynamic features
+    invalid_fill_px: int = 2         # invalid-depth pixels this close to a segment join it
 
 
 @dataclass
@@ -97,12 +99,12 @@ class FlowEpipolarConfig:
     # grid prior without history, posterior clamp [c, 1 - c] so that cells never freeze at 0 or 1.
     lk_window: int = 21
     lk_levels: int = 3
-    fb_max_px: float = 1.0
+    fb_max_px: float = 0.0
     ransac_px: float = 1.0
     min_tracks: int = 15
     f_outside_boxes: bool = True
     initial_prior: float = 0.5
-    prob_clamp: float = 0.01
+    prob_clamp: float = 0.05
 
 
 @dataclass
@@ -112,6 +114,7 @@ class DepthSdfConfig:
     weight: float = 1.0
     iterations: int = 20
     base_threshold: float = 0.02
+    min_sigma: float = 0.01          # floor of the two-point depth std (m): equal depths give sigma = 0
     seed: int = 0
 
 

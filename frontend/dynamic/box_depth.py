@@ -1,0 +1,409 @@
+"""Bounding box + depth continuity (Fang, Han, Wang, Yuan 2021; ``../shared/seeds/001_*.txt``).
+
+Three steps per frame, as in the paper:
+
+1. **PDT segmentation (Algorithm 1, Eqs. 2-8).** For every box of a priority dynamic target
+   (``ClassGroups.dynamic``: person, cat, dog, horse) a flood fill on the depth image starts from one
+   of five seeds -- the box centre, then the midpoints of the four half-axes (top, bottom, left,
+   right; Fig. 3) -- and grows over the 8-neighbourhood while ``|d_seed - d_neighbour| < omega_pixel``
+   and the neighbour lies in the box. Step 3 of the paper makes every newly added pixel the next
+   ``p_seed``, so the test is *neighbour to neighbour* (a depth gradient limit, not a band around the
+   first seed); that is OpenCV's floating-range ``cv2.floodFill`` with 8-connectivity on the float
+   depth crop of the box (the box is the crop, so "inside the box" is implicit). A fill is valid when
+   its rows span more than ``height_ratio`` (0.75) of the box height; otherwise the next seed is
+   tried. The valid fill is then filtered by Eq. 8: with ``d_ave`` the mean fill depth (Eq. 3),
+   ``D_i = alpha * d_ave - d_i`` (Eq. 4) and ``G_i`` the pixel's distance to the nearest box side
+   (Eqs. 5-7, pixels), pixels with ``D_i + omega * G_i < 0`` are removed -- i.e. pixels deeper than the
+   mean, the more so the closer they lie to the box border (the overflow into the background or the
+   floor that the seeds' strategy tends to produce).
+2. **Passive objects dragged by a PDT (Algorithm 2, Eqs. 9-11).** A box of a high/low-probability
+   passive class (p_pas = 0.8 / 0.25) is examined when, for some PDT box,
+   ``A_pas / (A_pas ∩ A_act) <= K * p_pas``. The flood fill then starts from all PDT pixels inside the
+   passive box with the larger ``omega_pixel_passive``; ``N_pas`` = pixels reached that are not PDT
+   pixels ("the pixels belonging to this object"), ``N_box`` = pixels of the passive box. If
+   ``N_box / N_pas <= K * p_pas`` the object is dragged: its features become dynamic.
+3. **Effective dynamic features (Algorithm 3, Eqs. 12-17).** Static features of the previous and the
+   current frame are matched by ORB descriptor (Hamming, cross-check), a homography ``H`` is fitted by
+   RANSAC; each dynamic feature matched to a dynamic feature of the previous frame is projected with
+   ``H``. If the projection lies within ``reuse_radius_px`` of its current position (Eq. 13) and the
+   composite grey and depth values (Eqs. 14-15) at the projection and at the current position agree
+   within ``reuse_gray`` / ``reuse_depth`` (Eqs. 16-17), the feature is an *effective* dynamic feature:
+   it moved like the static scene (a seated person's still torso) and is reused for tracking with the
+   lowered probability ``reuse_prob``.
+
+Choices where the paper is vague (all checked on the Bonn crowd sequence):
+
+* **Parameters.** The paper gives no numbers for ``omega_pixel``, ``alpha``, ``omega``, ``K``, the
+  displacement and composite thresholds. ``omega_pixel`` = 5 cm between neighbours separates a person
+  from a wall behind them and still follows a body whose depth noise is ~1-2 cm at 2-3 m; 10 cm for
+  passive objects ("appropriately increased"). ``alpha`` = 1, ``omega`` = 0.01 m/px (a pixel 10 px
+  from the box side is removed when it is 10 cm deeper than the mean). ``K`` must exceed 1/p_pas for
+  Eqs. 9 and 11 to ever hold (both ratios are >= 1); ``K`` = 5 means an overlap / a connected object
+  covering >= 25 % of a high-probability passive box and >= 80 % of a low-probability one.
+* **Invalid depth (0).** Continuity cannot be tested there, so the fill never enters an invalid pixel
+  (they are pre-set in the flood-fill mask), and a seed on an invalid pixel moves to the nearest valid
+  pixel within ``_SEED_SEARCH_PX``. After Eq. 8, invalid pixels within ``invalid_fill_px`` of the
+  segment (holes on hair and dark clothes, the depth shadow at the silhouette where ORB corners
+  like to sit) are added to it, since they most likely belong to the person.
+* **No valid seed.** If none of the five fills spans 0.75 of the box (person cut by the image border,
+  half occluded, depth missing), the fill with the largest vertical span is kept rather than dropping
+  the person (counted in ``info['fallback']``).
+* **Composite values (Eqs. 14-15).** The printed ``G + G_ave / 2`` is read as the mean of the pixel and
+  its 8-neighbourhood average, ``(G + G_ave) / 2``; both composites are taken in the current frame,
+  as the paper states. Depth averages skip invalid neighbours; an invalid centre fails the test.
+* **Matching.** Mutually best Hamming matches (a cross-check) with a distance cap of 50 (ORB-SLAM's
+  TH_LOW), searched among keypoints less than 40 px from their previous position (k-d tree pairs and
+  a popcount instead of a full brute-force matrix: ~4x cheaper on Bonn frames, and a handheld camera
+  at 30 Hz moves far less); at least 8 static matches are needed for ``H`` (RANSAC threshold
+  ``reuse_radius_px``). Faster motion finds no ``H`` and nothing is reused (the safe side).
+* **Probabilities.** 1 on PDT pixels and on the pixels filled from them in a dragged passive box;
+  ``p_pas`` on the rest of a dragged passive box (the paper marks the whole box dynamic; keeping
+  ``p_pas`` there flags high-probability objects and only down-weights low-probability ones);
+  ``reuse_prob`` for effective dynamic features; 0 elsewhere. With an empty detection list the method
+  says 0 for every keypoint (a confident "static": the detector saw nobody); with
+  ``detections=None`` (no detector ran) it abstains (NaN).
+
+Behaviour seen on Bonn crowd (frames 230-480, YOLOX-Nano boxes): the segments follow the people
+closely (the RGB-depth misregistration of a few pixels shows at the silhouettes); the fill leaks a
+little onto the floor in front of the feet, which Eq. 8 keeps (nearer than the mean), and Eq. 8
+trims the far end of a strongly leaning body near the box bottom. A chair beside a person can be
+"dragged" because the floor connects them within 10 cm steps (9 of 250 frames, none really moved).
+Algorithm 3 reuses 1-6 % of the dynamic features, also on slowly walking people whose inter-frame
+motion stays within 3 px of the homography; ``reuse_prob`` keeps them down-weighted.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from frontend.dynamic.base import Detection, DynamicContext, MethodOutput, keypoints_in_mask
+from frontend.matching import hamming_pairs
+from slam.dynamic_config import BoxDepthConfig, ClassGroups
+
+_SEED_SEARCH_PX = 4          # a seed on invalid depth moves to the nearest valid pixel this close
+_MAX_HAMMING = 50            # descriptor distance cap for frame-to-frame matching (ORB-SLAM TH_LOW)
+_MATCH_RADIUS_PX = 40.0      # frame-to-frame matches are searched this close to the previous position
+_MIN_STATIC_MATCHES = 8      # static matches needed to fit the homography
+_MAX_FILL_COMPONENTS = 64    # flood fills per passive box (one per depth-connected piece of seeds)
+_FILL_FLAGS = 8 | cv2.FLOODFILL_MASK_ONLY | (255 << 8)   # 8-connectivity, floating range, mask value 255
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry helpers (public for tests)
+
+
+def box_pixels(det: Detection, width: int, height: int) -> Optional[tuple[int, int, int, int]]:
+    """Integer pixel bounds (x0, y0, x1, y1), x1/y1 exclusive, clipped to the image; None if empty."""
+    x0 = int(np.clip(np.floor(det.x0), 0, width))
+    y0 = int(np.clip(np.floor(det.y0), 0, height))
+    x1 = int(np.clip(np.ceil(det.x1), 0, width))
+    y1 = int(np.clip(np.ceil(det.y1), 0, height))
+    if x1 - x0 < 1 or y1 - y0 < 1:
+        return None
+    return x0, y0, x1, y1
+
+
+def seed_points(h: int, w: int) -> list[tuple[int, int]]:
+    """The five seeds (row, col) of a h x w box, in the paper's order: centre, then the midpoints of
+    the upper, lower, left and right half-axes."""
+    rc, cc = h // 2, w // 2
+    pts = [(rc, cc), (h // 4, cc), (min(h - 1, (3 * h) // 4), cc), (rc, w // 4), (rc, min(w - 1, (3 * w) // 4))]
+    return pts
+
+
+def flood_fill(depth: np.ndarray, seeds: np.ndarray, omega: float,
+               max_components: int = _MAX_FILL_COMPONENTS) -> np.ndarray:
+    """Pixels reached from any of ``seeds`` ((K,2) row, col) by 8-neighbour steps whose depth change
+    is strictly below ``omega`` (neighbour-to-neighbour, Algorithm 1). Invalid depth (<= 0 or not
+    finite) is never entered; seeds on invalid depth are ignored. Returns a bool mask of ``depth``'s
+    shape."""
+    img = np.ascontiguousarray(depth, dtype=np.float32)
+    h, w = img.shape
+    mask = np.zeros((h + 2, w + 2), np.uint8)
+    inner = mask[1:-1, 1:-1]
+    inner[~(np.isfinite(img) & (img > 0))] = 1
+    img = np.where(inner == 1, np.float32(0), img)     # floodFill must not see NaN
+    seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
+    if len(seeds):
+        seeds = seeds[(seeds[:, 0] >= 0) & (seeds[:, 0] < h) & (seeds[:, 1] >= 0) & (seeds[:, 1] < w)]
+    # OpenCV accepts |diff| <= bound; the paper's test is strict.
+    diff = float(np.nextafter(np.float32(omega), np.float32(0)))
+    for _ in range(max_components):
+        if not len(seeds):
+            break
+        seeds = seeds[inner[seeds[:, 0], seeds[:, 1]] == 0]     # not yet filled, not invalid
+        if not len(seeds):
+            break
+        r, c = int(seeds[0, 0]), int(seeds[0, 1])
+        cv2.floodFill(img, mask, (c, r), 0, diff, diff, _FILL_FLAGS)
+    return inner == 255
+
+
+def nearest_valid(depth: np.ndarray, row: int, col: int, radius: int = _SEED_SEARCH_PX) -> Optional[tuple[int, int]]:
+    """``(row, col)`` if its depth is valid, else the nearest valid pixel within ``radius``, else None."""
+    if depth[row, col] > 0:
+        return row, col
+    h, w = depth.shape
+    r0, r1, c0, c1 = max(0, row - radius), min(h, row + radius + 1), max(0, col - radius), min(w, col + radius + 1)
+    rr, cc = np.nonzero(depth[r0:r1, c0:c1] > 0)
+    if not len(rr):
+        return None
+    k = int(np.argmin((rr + r0 - row) ** 2 + (cc + c0 - col) ** 2))
+    return int(rr[k] + r0), int(cc[k] + c0)
+
+
+def side_distance(h: int, w: int) -> np.ndarray:
+    """G_i (Eqs. 5-7): each pixel centre's distance (px) to the nearest side of an h x w box."""
+    gy = np.minimum(np.arange(h) + 0.5, h - np.arange(h) - 0.5)
+    gx = np.minimum(np.arange(w) + 0.5, w - np.arange(w) - 0.5)
+    return np.minimum(gy[:, None], gx[None, :])
+
+
+def eq8_filter(region: np.ndarray, depth: np.ndarray, alpha: float, omega: float) -> np.ndarray:
+    """Remove the pixels of ``region`` (bool, box crop) with ``alpha * d_ave - d_i + omega * G_i < 0``."""
+    if not region.any():
+        return region
+    d_ave = float(depth[region].mean())                                         # Eq. 3
+    keep = (alpha * d_ave - depth) + omega * side_distance(*depth.shape) >= 0.0   # Eqs. 4-8
+    return region & keep
+
+
+def segment_box(depth: np.ndarray, cfg: BoxDepthConfig) -> tuple[np.ndarray, int]:
+    """Algorithm 1 on the depth crop of one PDT box. Returns the segment (bool, crop shape) and the
+    index of the accepted seed (0-4), or -1 when no seed passed the height test (then the fill with
+    the largest vertical span is returned)."""
+    h, w = depth.shape
+    best, best_span, accepted = np.zeros((h, w), bool), -1, -1
+    for k, (r, c) in enumerate(seed_points(h, w)):
+        seed = nearest_valid(depth, r, c)
+        if seed is None:
+            continue
+        region = flood_fill(depth, np.array([seed]), cfg.omega_pixel)
+        rows = np.flatnonzero(region.any(axis=1))
+        span = int(rows[-1] - rows[0]) if len(rows) else -1
+        if span > best_span:
+            best, best_span = region, span
+        if span > cfg.height_ratio * h:
+            best, accepted = region, k
+            break
+    best = eq8_filter(best, depth, cfg.alpha, cfg.omega)
+    return _absorb_invalid(best, depth, cfg.invalid_fill_px), accepted
+
+
+def _absorb_invalid(region: np.ndarray, depth: np.ndarray, radius: int) -> np.ndarray:
+    if radius <= 0 or not region.any():
+        return region
+    k = 2 * int(radius) + 1
+    near = cv2.dilate(region.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+    return region | (near & ~(depth > 0))
+
+
+def composite(img: np.ndarray, uv: np.ndarray, skip_zero: bool = False) -> np.ndarray:
+    """Eqs. 14-15: (value at the pixel + mean of its 8 neighbours) / 2 at each (N,2) point (nearest
+    pixel). With ``skip_zero`` (depth) invalid neighbours are left out of the mean and an invalid
+    centre gives NaN."""
+    h, w = img.shape[:2]
+    if not len(uv):
+        return np.zeros(0)
+    cols = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
+    rows = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
+    dr, dc = np.meshgrid(np.arange(-1, 2), np.arange(-1, 2), indexing="ij")
+    ring = (dr != 0) | (dc != 0)
+    nr = np.clip(rows[:, None] + dr[ring][None, :], 0, h - 1)
+    nc = np.clip(cols[:, None] + dc[ring][None, :], 0, w - 1)
+    centre = img[rows, cols].astype(float)
+    neigh = img[nr, nc].astype(float)
+    if skip_zero:
+        ok = neigh > 0
+        cnt = ok.sum(axis=1)
+        mean = np.where(cnt > 0, (neigh * ok).sum(axis=1) / np.maximum(cnt, 1), centre)
+        out = (centre + mean) / 2.0
+        out[~(centre > 0)] = np.nan
+        return out
+    return (centre + neigh.mean(axis=1)) / 2.0
+
+
+def _hamming(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of two (P,32) uint8 descriptor arrays."""
+    if hasattr(np, "bitwise_count"):                  # numpy >= 2: hardware popcount on 4 words
+        x = np.ascontiguousarray(desc_a).view(np.uint64) ^ np.ascontiguousarray(desc_b).view(np.uint64)
+        return np.bitwise_count(x).sum(axis=1).astype(np.int64)
+    return hamming_pairs(desc_a, desc_b).astype(np.int64)
+
+
+def _first_per_group(groups: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Index of the smallest (non-negative, < 2**20) key in each group: one argsort on a packed key."""
+    order = np.argsort(groups.astype(np.int64) * (1 << 20) + keys, kind="stable")
+    g = groups[order]
+    return order[np.r_[True, g[1:] != g[:-1]]]
+
+
+def match_descriptors(desc_a: np.ndarray, uv_a: np.ndarray, desc_b: np.ndarray, uv_b: np.ndarray,
+                      radius: float = _MATCH_RADIUS_PX, max_distance: int = _MAX_HAMMING) -> np.ndarray:
+    """Mutually best Hamming matches (M,2) of indices into a and b among the pairs less than
+    ``radius`` px apart (a cross-checked brute-force match restricted to frame-to-frame motion)."""
+    if len(desc_a) == 0 or len(desc_b) == 0:
+        return np.zeros((0, 2), int)
+    pairs = cKDTree(np.asarray(uv_a, float)).sparse_distance_matrix(
+        cKDTree(np.asarray(uv_b, float)), radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.zeros((0, 2), int)
+    ia, ib = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    ham = _hamming(desc_a[ia], desc_b[ib])
+    keep = ham <= max_distance
+    ia, ib, ham = ia[keep], ib[keep], ham[keep]
+    if len(ia) == 0:
+        return np.zeros((0, 2), int)
+    best_a = np.zeros(len(ia), bool)
+    best_a[_first_per_group(ia, ham)] = True
+    best_b = np.zeros(len(ia), bool)
+    best_b[_first_per_group(ib, ham)] = True
+    ok = best_a & best_b
+    return np.stack([ia[ok], ib[ok]], axis=1)
+
+
+# --------------------------------------------------------------------------------------------
+
+
+class BoxDepthMethod:
+    """Fang et al. 2021: depth-continuity segmentation inside detector boxes, dragged passive objects
+    and reuse of still dynamic features. Keeps the previous frame for Algorithm 3."""
+
+    name = "box_depth"
+    needs_detector = True
+
+    def __init__(self, cfg: BoxDepthConfig, classes: ClassGroups):
+        self.cfg = cfg
+        self.classes = classes
+        self._dynamic = set(int(c) for c in classes.dynamic)
+        self._passive_prob = {int(c): float(classes.low_passive_prob) for c in classes.low_passive}
+        self._passive_prob.update({int(c): float(classes.high_passive_prob) for c in classes.high_passive})
+        self._prev: Optional[dict] = None
+
+    def reset(self) -> None:
+        self._prev = None
+
+    # -- per frame ---------------------------------------------------------------------------------
+
+    def process(self, ctx: DynamicContext) -> MethodOutput:
+        frame = ctx.frame
+        n = len(frame)
+        if ctx.detections is None:
+            self._prev = None
+            return MethodOutput.abstain(n)
+        depth = np.asarray(ctx.depth, dtype=np.float32)
+        h, w = depth.shape[:2]
+        pdt = [d for d in ctx.detections if d.class_id in self._dynamic]
+        passive = [d for d in ctx.detections if d.class_id in self._passive_prob]
+
+        # Algorithm 1: PDT pixels.
+        mask = np.zeros((h, w), bool)
+        pdt_boxes, fallback = [], 0
+        for det in pdt:
+            b = box_pixels(det, w, h)
+            if b is None:
+                continue
+            x0, y0, x1, y1 = b
+            seg, accepted = segment_box(depth[y0:y1, x0:x1], self.cfg)
+            fallback += accepted < 0
+            mask[y0:y1, x0:x1] |= seg
+            pdt_boxes.append(b)
+
+        prob = np.zeros(n)
+        uv = frame.uv_raw
+        # Algorithm 2: passive objects connected in depth to a PDT.
+        passive_mask = np.zeros((h, w), bool)
+        dragged = 0
+        for det in passive:
+            b = box_pixels(det, w, h)
+            if b is None or not pdt_boxes:
+                continue
+            p_pas = self._passive_prob[det.class_id]
+            bound = self.cfg.k_passive * p_pas
+            if not _overlaps_enough(b, pdt_boxes, bound):                          # Eqs. 9-10
+                continue
+            x0, y0, x1, y1 = b
+            seeds_in = mask[y0:y1, x0:x1]
+            if not seeds_in.any():
+                continue
+            crop = depth[y0:y1, x0:x1]
+            filled = flood_fill(crop, np.argwhere(seeds_in), self.cfg.omega_pixel_passive)
+            obj = filled & ~seeds_in
+            n_box, n_pas = (y1 - y0) * (x1 - x0), int(obj.sum())
+            if n_pas == 0 or n_box / n_pas > bound:                                # Eq. 11
+                continue
+            dragged += 1
+            passive_mask[y0:y1, x0:x1] |= obj
+            inside = (uv[:, 0] >= x0) & (uv[:, 0] < x1) & (uv[:, 1] >= y0) & (uv[:, 1] < y1)
+            prob[inside] = np.maximum(prob[inside], p_pas)
+
+        seg_mask = mask | passive_mask
+        if n:
+            prob = np.maximum(prob, keypoints_in_mask(seg_mask, uv).astype(float))
+        dyn = prob >= 0.5
+
+        # Algorithm 3: effective dynamic features.
+        reused, n_static_matches = self._reuse(ctx, dyn, depth)
+        if reused.any():
+            prob[reused] = np.minimum(prob[reused], self.cfg.reuse_prob)
+
+        # Algorithm 3 compares both composites in the current frame, so only the keypoints are kept.
+        self._prev = dict(index=frame.index, uv=np.asarray(uv, float).copy(), desc=frame.descriptors, dyn=dyn)
+        info = dict(pdt_boxes=len(pdt_boxes), fallback=int(fallback), dragged=dragged,
+                    dynamic=int(dyn.sum()), reused=int(reused.sum()), static_matches=n_static_matches)
+        return MethodOutput(prob, seg_mask.astype(np.float32), info)
+
+    def _reuse(self, ctx: DynamicContext, dyn: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, int]:
+        """Algorithm 3: which of the current dynamic features are effective (still) features."""
+        frame = ctx.frame
+        reused = np.zeros(len(frame), bool)
+        prev = self._prev
+        if prev is None or prev["index"] >= frame.index or not dyn.any() or not prev["dyn"].any():
+            return reused, 0
+        sta_cur, sta_last = np.flatnonzero(~dyn), np.flatnonzero(~prev["dyn"])
+        m = match_descriptors(frame.descriptors[sta_cur], frame.uv_raw[sta_cur],
+                              prev["desc"][sta_last], prev["uv"][sta_last])
+        if len(m) < _MIN_STATIC_MATCHES:
+            return reused, len(m)
+        src = prev["uv"][sta_last[m[:, 1]]].astype(np.float32)
+        dst = frame.uv_raw[sta_cur[m[:, 0]]].astype(np.float32)
+        H, _ = cv2.findHomography(src, dst, cv2.RANSAC, float(self.cfg.reuse_radius_px))
+        if H is None:
+            return reused, len(m)
+        dyn_cur, dyn_last = np.flatnonzero(dyn), np.flatnonzero(prev["dyn"])
+        md = match_descriptors(frame.descriptors[dyn_cur], frame.uv_raw[dyn_cur],
+                               prev["desc"][dyn_last], prev["uv"][dyn_last])
+        if not len(md):
+            return reused, len(m)
+        cur_idx = dyn_cur[md[:, 0]]
+        p_cur = frame.uv_raw[cur_idx].astype(float)
+        p_last = prev["uv"][dyn_last[md[:, 1]]].astype(np.float64)
+        p_proj = cv2.perspectiveTransform(p_last.reshape(-1, 1, 2), H).reshape(-1, 2)     # Eq. 12
+        ok = np.linalg.norm(p_cur - p_proj, axis=1) < self.cfg.reuse_radius_px              # Eq. 13
+        if ok.any():
+            gray = ctx.gray
+            g_ok = np.abs(composite(gray, p_proj) - composite(gray, p_cur)) < self.cfg.reuse_gray      # Eq. 16
+            d_diff = np.abs(composite(depth, p_proj, True) - composite(depth, p_cur, True))
+            d_ok = np.nan_to_num(d_diff, nan=np.inf) < self.cfg.reuse_depth                         # Eq. 17
+            ok &= g_ok & d_ok
+        reused[cur_idx[ok]] = True
+        return reused, len(m)
+
+    def end_frame(self, ctx: DynamicContext, output: MethodOutput, T_cw: Optional[np.ndarray],
+                  is_keyframe: bool) -> None:
+        """The previous-frame state for Algorithm 3 is kept in ``process``; nothing to do here."""
+        return None
+
+
+def _overlaps_enough(b: tuple[int, int, int, int], pdt_boxes: list, bound: float) -> bool:
+    """Eq. 9 against any PDT box: A_pas / (A_pas ∩ A_act) <= bound."""
+    x0, y0, x1, y1 = b
+    area = (x1 - x0) * (y1 - y0)
+    for a0, b0, a1, b1 in pdt_boxes:
+        inter = max(0, min(x1, a1) - max(x0, a0)) * max(0, min(y1, b1) - max(y0, b0))
+        if inter > 0 and area / inter <= bound:
+            return True
+    return False
