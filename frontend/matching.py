@@ -33,6 +33,8 @@ class ProjectionMatches:
 def first_per_group(groups: np.ndarray, keys: np.ndarray) -> np.ndarray:
     """Indices of the element with the smallest key in each group."""
     order = np.lexsort((keys, groups))
+    if len(order) == 0:
+        return order
     first = np.r_[True, groups[order][1:] != groups[order][:-1]]
     return order[first]
 
@@ -71,6 +73,8 @@ def search_by_projection(frame: FeatureFrame, points: MapPoints, T_cw: np.ndarra
     if has_octave:
         ok &= np.abs(frame.octaves[ki] - points.octaves[pi]) <= max_level_gap
     pi, ki = pi[ok], ki[ok]
+    if len(pi) == 0:
+        return result
     ham = hamming_pairs(points.descriptors[pi], frame.descriptors[ki])
     best, second = _best_two(pi, ham)
     accept = ham[best] <= max_distance
@@ -89,6 +93,8 @@ def search_by_projection(frame: FeatureFrame, points: MapPoints, T_cw: np.ndarra
 def _best_two(groups: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per group: index of the smallest key, and of the second smallest (-1 if none)."""
     order = np.lexsort((keys, groups))
+    if len(order) == 0:
+        return order, order.copy()
     g = groups[order]
     is_first = np.r_[True, g[1:] != g[:-1]]
     first_pos = np.flatnonzero(is_first)

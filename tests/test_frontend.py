@@ -399,3 +399,30 @@ def test_all_dynamic_first_frame_does_not_initialise(sequence, config):
     assert system.num_keyframes == 0
     second = system.process(frames[1].rgb, frames[1].depth, frames[1].timestamp, index=1)
     assert second.state == TrackingState.OK and second.is_keyframe
+
+
+def test_search_by_projection_when_every_candidate_fails_the_level_check():
+    """Candidates inside the radius but all on distant pyramid levels: no match, no crash."""
+    from slam.camera import PinholeCamera
+    from frontend.matching import search_by_projection
+
+    camera = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
+    scales = 1.2 ** np.arange(8)
+    frame = FeatureFrame(0, 0.0, np.array([[320.0, 240.0]]), np.array([[320.0, 240.0]]), np.array([7]),
+                         np.zeros((1, 32), np.uint8), np.array([2.0]), np.array([np.nan]), np.zeros(1), scales)
+    points = MapPoints(np.array([5]), np.array([[0.0, 0.0, 2.0]]), np.zeros((1, 32), np.uint8), np.array([0]))
+    m = search_by_projection(frame, points, np.eye(4), camera, 15.0, 100, 0.8, np.ones(1, bool))
+    assert m.keypoint_of_point.tolist() == [-1] and m.visible.tolist() == [True]
+
+
+def test_search_by_projection_when_no_candidate_is_close_enough_in_descriptor_space():
+    from slam.camera import PinholeCamera
+    from frontend.matching import search_by_projection
+
+    camera = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
+    frame = FeatureFrame(0, 0.0, np.array([[320.0, 240.0]]), np.array([[320.0, 240.0]]), np.array([0]),
+                         np.zeros((1, 32), np.uint8), np.array([2.0]), np.array([np.nan]), np.zeros(1),
+                         1.2 ** np.arange(8))
+    points = MapPoints(np.array([5]), np.array([[0.0, 0.0, 2.0]]), np.full((1, 32), 255, np.uint8), np.array([0]))
+    m = search_by_projection(frame, points, np.eye(4), camera, 15.0, 50, 0.8, np.ones(1, bool))
+    assert m.keypoint_of_point.tolist() == [-1]
