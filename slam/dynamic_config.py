@@ -57,6 +57,14 @@ class CprConfig:
     rho_frame: float = 2.0
     tau: float = 0.6
     seed: int = 0
+    # Choices where the paper gives no number (reasons in frontend/dynamic/cpr.py).
+    icp_intensity_iterations: int = 5   # the first ones of icp_iterations; the rest are plain ICP
+    icp_max_points: int = 150           # points per sub-cloud used for its sub-pose
+    score_points: int = 800             # source points averaged in R(j)
+    score_candidates: int = 4           # nearest reference points searched per point for R(j)
+    min_score_ratio: float = 1.0        # dynamic also needs R(j) > ratio * median(R); 1.0 = paper only
+    refine: bool = True                 # Algorithm 1 on every frame's output
+    keyframe_recompute: bool = False    # keyframes: recompute the mask against sigma_keyframe in end_frame
 
 
 @dataclass

@@ -13,7 +13,8 @@ class RGBDFrame:
     """One colour + depth pair as read from disk or generated.
 
     rgb is HxWx3 uint8 in BGR order (OpenCV's), depth is HxW float32 in metres with 0 = invalid,
-    registered to the colour image.
+    registered to the colour image. ``dynamic_mask`` (HxW bool, True where a moving object is the visible
+    surface) is ground truth only synthetic sequences provide; None when unknown.
     """
 
     index: int
@@ -22,6 +23,7 @@ class RGBDFrame:
     depth: np.ndarray
     rgb_path: Optional[Path] = None
     depth_path: Optional[Path] = None
+    dynamic_mask: Optional[np.ndarray] = None
 
 
 class RGBDDataset(Protocol):
