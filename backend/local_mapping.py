@@ -113,7 +113,8 @@ class LocalMapper:
     # --- creation ----------------------------------------------------------------------------------
     def _create_landmarks(self, kf_id: int, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray) -> int:
         """New anchored landmarks from unmatched static features with depth, closest first."""
-        candidates = np.flatnonzero((lm_of_kp < 0) & frame.has_depth & (frame.dynamic_prob < self.dynamic_threshold))
+        admissible = frame.dynamic_prob < min(self.dynamic_threshold, self.cfg.landmark_max_dynamic_prob)
+        candidates = np.flatnonzero((lm_of_kp < 0) & frame.has_depth & admissible)
         candidates = candidates[np.argsort(frame.depths[candidates], kind="stable")]
         close = frame.depths[candidates] < self.camera.close_depth
         n_take = max(int(close.sum()), min(self.kf_cfg.min_new_landmarks, len(candidates)))

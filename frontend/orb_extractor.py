@@ -58,8 +58,10 @@ class OrbExtractor:
                                    nlevels=cfg.n_levels, edgeThreshold=cfg.edge_threshold,
                                    fastThreshold=cfg.fast_threshold, patchSize=31)
 
-    def extract(self, gray: np.ndarray, depth: np.ndarray, index: int = 0, timestamp: float = 0.0) -> FeatureFrame:
-        keypoints, descriptors = self._orb.detectAndCompute(gray, None)
+    def extract(self, gray: np.ndarray, depth: np.ndarray, index: int = 0, timestamp: float = 0.0,
+                mask: np.ndarray | None = None) -> FeatureFrame:
+        """Features of the image (only where ``mask`` is non-zero, if given)."""
+        keypoints, descriptors = self._orb.detectAndCompute(gray, mask)
         if descriptors is None or not keypoints:
             return self._empty(index, timestamp, gray)
         xy = np.array([k.pt for k in keypoints], dtype=float)

@@ -75,6 +75,9 @@ class TrackingConfig:
     chi2_stereo: float = 7.815
     # Features whose fused dynamic probability reaches this are kept out of tracking.
     dynamic_threshold: float = 0.5
+    # When fewer static features remain (people filling the view), extract more from the static
+    # part of the image (0 = never).
+    min_static_features: int = 400
     local_keyframes: int = 20
     covisible_per_keyframe: int = 10
 
@@ -116,6 +119,8 @@ class BackendConfig:
     # Dynamic probability inflates observation noise by 1 / (1 - p)^2, capped here.
     max_dynamic_inflation: float = 100.0
     dynamic_removal_threshold: float = 0.7
+    # New landmarks only from features below this dynamic probability (stricter than tracking's).
+    landmark_max_dynamic_prob: float = 0.25
 
 
 @dataclass
@@ -156,7 +161,8 @@ _POSITIVE = {
 _NON_NEGATIVE = {"camera.cx", "camera.cy", "camera.min_depth", "backend.depth_noise_coeff",
                  "backend.extra_updates", "keyframes.min_frames", "seed"}
 _UNIT_INTERVAL = {"tracking.match_ratio", "tracking.dynamic_threshold", "keyframes.tracked_ratio",
-                  "backend.cull_found_ratio", "backend.dynamic_removal_threshold"}
+                  "backend.cull_found_ratio", "backend.dynamic_removal_threshold",
+                  "backend.landmark_max_dynamic_prob", "dynamic.box_prior"}
 
 
 def _check_type(value: Any, annotation: Any, where: str) -> Any:

@@ -49,7 +49,7 @@ class CprConfig:
     sigma_keyframe: int = 5
     candidates: int = 10
     student_nu: float = 5.0
-    icp_iterations: int = 10
+    icp_iterations: int = 6
     mad_scale: float = 1.4826
     circle_radius: int = 6
     refine_window: int = 6
@@ -58,7 +58,7 @@ class CprConfig:
     tau: float = 0.6
     seed: int = 0
     # Choices where the paper gives no number (reasons in frontend/dynamic/cpr.py).
-    icp_intensity_iterations: int = 5   # the first ones of icp_iterations; the rest are plain ICP
+    icp_intensity_iterations: int = 3   # the first ones of icp_iterations; the rest are plain ICP
     icp_max_points: int = 150           # points per sub-cloud used for its sub-pose
     score_points: int = 800             # source points averaged in R(j)
     score_candidates: int = 4           # nearest reference points searched per point for R(j)
@@ -137,5 +137,11 @@ class DynamicConfig:
     box_depth: BoxDepthConfig = field(default_factory=BoxDepthConfig)
     flow_epipolar: FlowEpipolarConfig = field(default_factory=FlowEpipolarConfig)
     depth_sdf: DepthSdfConfig = field(default_factory=DepthSdfConfig)
+    # Features inside (dilated) dynamic-class boxes get at least this probability, fused like a
+    # method: below the tracking threshold, so a still person's features may still track, but above
+    # the landmark-admission threshold (backend.landmark_max_dynamic_prob), so nothing inside a
+    # person box enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 disables.
+    box_prior: float = 0.3
+    box_prior_dilate_px: int = 10
     # Optional folder for PNG mask overlays (empty = off).
     dump_masks_dir: str = ""

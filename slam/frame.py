@@ -35,6 +35,19 @@ class FeatureFrame:
     def __len__(self) -> int:
         return len(self.uv)
 
+    def subset(self, keep: np.ndarray) -> "FeatureFrame":
+        return FeatureFrame(self.index, self.timestamp, self.uv_raw[keep], self.uv[keep], self.octaves[keep],
+                            self.descriptors[keep], self.depths[keep], self.u_right[keep], self.dynamic_prob[keep],
+                            self.scale_factors, self.gray)
+
+    def append(self, other: "FeatureFrame") -> "FeatureFrame":
+        """This frame's features followed by ``other``'s (same image, same pyramid)."""
+        cat = np.concatenate
+        return FeatureFrame(self.index, self.timestamp, cat([self.uv_raw, other.uv_raw]), cat([self.uv, other.uv]),
+                            cat([self.octaves, other.octaves]), cat([self.descriptors, other.descriptors]),
+                            cat([self.depths, other.depths]), cat([self.u_right, other.u_right]),
+                            cat([self.dynamic_prob, other.dynamic_prob]), self.scale_factors, self.gray)
+
     @property
     def has_depth(self) -> np.ndarray:
         return np.isfinite(self.u_right)

@@ -15,9 +15,11 @@ from typing import Optional
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from backend.local_mapping import LocalMapper
 from frontend.dynamic import DynamicFilter, build_dynamic_filter
+from frontend.dynamic.base import keypoints_in_mask
 from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_keyframe
 from frontend.orb_extractor import OrbExtractor
 from frontend.tracker import Tracker, TrackingState
@@ -86,6 +88,7 @@ class System:
             probs = self.dynamic_filter.process(frame, rgb, gray, depth, self.tracker.predicted_T_cw(),
                                                 self.tracker.last_T_cw)
             frame.dynamic_prob = np.clip(np.nan_to_num(probs, nan=0.0), 0.0, 1.0)
+            frame = self._refill_static(frame, gray, depth)
         if self.tracker.state == TrackingState.NOT_INITIALIZED:
             output = self._initialize(frame)
         else:
@@ -94,6 +97,25 @@ class System:
             self.dynamic_filter.end_frame(None if output.T_wc is None else invert(output.T_wc), output.is_keyframe)
         self.timer.end_frame()
         return output
+
+    def _refill_static(self, frame: FeatureFrame, gray: np.ndarray, depth: np.ndarray) -> FeatureFrame:
+        """When moving objects hold most features, add features from the static rest of the image:
+        the 1000-feature budget otherwise goes to the people and tracking starves."""
+        threshold = self.config.tracking.dynamic_threshold
+        mask = getattr(self.dynamic_filter, "last_mask", None)
+        if mask is None or np.sum(frame.dynamic_prob < threshold) >= self.config.tracking.min_static_features:
+            return frame
+        # Only where the new features could become landmarks: outside person boxes and masks.
+        admissible = min(threshold, self.config.backend.landmark_max_dynamic_prob)
+        allowed = (mask < admissible).astype(np.uint8) * 255
+        extra = self.extractor.extract(gray, depth, frame.index, frame.timestamp, mask=allowed)
+        if len(extra) == 0:
+            return frame
+        if len(frame):
+            distance, _ = cKDTree(frame.uv_raw).query(extra.uv_raw)
+            extra = extra.subset(distance > 2.0)  # not a re-detection of a feature we have
+        extra.dynamic_prob = keypoints_in_mask(mask, extra.uv_raw).astype(float)
+        return frame.append(extra)
 
     def close(self) -> None:
         """Release what the components hold open (e.g. save the detection cache)."""

@@ -14,7 +14,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput
+from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.fusion import fuse
 from slam.camera import PinholeCamera
 from slam.dynamic_config import DynamicConfig
@@ -48,6 +48,7 @@ class DynamicRejector:
         self._weights = [getattr(cfg, m.name).weight for m in methods]
         self._last: Optional[tuple[DynamicContext, dict[str, MethodOutput]]] = None
         self._dump_dir = Path(cfg.dump_masks_dir) if cfg.dump_masks_dir else None
+        self.last_mask: Optional[np.ndarray] = None
 
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
@@ -61,12 +62,33 @@ class DynamicRejector:
                 outputs[method.name] = method.process(ctx)
             self.stats.add(method.name, outputs[method.name].flagged)
         fused = fuse([o.prob for o in outputs.values()], self._weights, self.cfg.fusion, len(frame))
+        prior_mask = self._box_prior_mask(ctx)
+        if prior_mask is not None:
+            fused = np.maximum(fused, keypoints_in_mask(prior_mask, frame.uv_raw))
         self.stats.frames += 1
         self.stats.add("fused", int(np.sum(fused >= 0.5)))
         self._last = (ctx, outputs)
+        self.last_mask = fused_pixel_mask(outputs, self.cfg.fusion, self._weights, ctx.gray.shape)
+        if prior_mask is not None:
+            self.last_mask = prior_mask if self.last_mask is None else np.maximum(self.last_mask, prior_mask)
         if self._dump_dir is not None:
             self._dump(ctx, outputs, fused)
         return fused
+
+    def _box_prior_mask(self, ctx: DynamicContext) -> Optional[np.ndarray]:
+        """``box_prior`` inside every dilated dynamic-class box (None when off or no detections)."""
+        if self.cfg.box_prior <= 0 or not ctx.detections:
+            return None
+        boxes = [d for d in ctx.detections if d.class_id in self.cfg.classes.dynamic]
+        if not boxes:
+            return None
+        h, w = ctx.gray.shape
+        mask = np.zeros((h, w), np.float32)
+        pad = self.cfg.box_prior_dilate_px
+        for d in boxes:
+            x0, y0 = max(int(d.x0) - pad, 0), max(int(d.y0) - pad, 0)
+            mask[y0:min(int(np.ceil(d.y1)) + pad, h), x0:min(int(np.ceil(d.x1)) + pad, w)] = self.cfg.box_prior
+        return mask
 
     def end_frame(self, T_cw: Optional[np.ndarray], is_keyframe: bool) -> None:
         if self._last is None:
@@ -86,6 +108,20 @@ class DynamicRejector:
     def _dump(self, ctx: DynamicContext, outputs: dict[str, MethodOutput], fused: np.ndarray) -> None:
         self._dump_dir.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(self._dump_dir / f"{ctx.frame.index:06d}.png"), overlay(ctx, outputs, fused))
+
+
+def fused_pixel_mask(outputs: dict[str, MethodOutput], mode: str, weights: list[float],
+                     shape: tuple[int, int]) -> Optional[np.ndarray]:
+    """The methods' pixel masks fused like their keypoint probabilities (None if none has a mask)."""
+    masks, used = [], []
+    for weight, out in zip(weights, outputs.values()):
+        if out.mask is not None and np.shape(out.mask) == tuple(shape):
+            masks.append(np.asarray(out.mask, np.float32).reshape(1, -1))
+            used.append(weight)
+    if not masks:
+        return None
+    mode = "max" if mode == "single" else mode
+    return fuse(masks, used, mode, masks[0].shape[1]).reshape(shape).astype(np.float32)
 
 
 _COLOURS = [(0, 0, 255), (0, 200, 255), (255, 0, 255), (255, 128, 0)]
