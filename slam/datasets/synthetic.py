@@ -214,10 +214,8 @@ MOVER_PRESETS: dict[str, tuple[str, ...]] = {
 for the first half of the sequence, then is dragged along by a person walking past it)."""
 
 
-_PLAN_TRIES = 200
-"""Candidate paths tried per mover (see ``SyntheticSequence._plan_movers``)."""
-_SCREEN_TIME = 0.01
-"""Planning cost per unit of mean screen share: a tie-breaker among paths that meet all constraints."""
+_PLAN_TRIES = 120
+"""Candidate paths tried per mover at most (see ``SyntheticSequence._plan_movers``)."""
 
 
 class WalkLoop:
@@ -711,8 +709,9 @@ class SyntheticSequence:
     def _plan_movers(self, kinds: Sequence[str]) -> list[Mover]:
         """Appearance from one seeded stream, paths from another. Mover k is made to cross the view
         (within +-20 deg of its centre) near its own time, spread over the sequence in a random order
-        ("drag": the grab, mid-way). Of up to ``_PLAN_TRIES`` candidate loops the cheapest by ``_plan_cost``
-        is kept, stopping at the fifth that meets all its constraints."""
+        ("drag": the grab, mid-way). Movers are placed one after the other (greedy): the first of up to
+        ``_PLAN_TRIES`` random candidate paths that meets all of ``_plan_cost``'s constraints is kept,
+        else the cheapest, so crowded short sequences are a best effort."""
         look, shape = np.random.default_rng([self.seed, 31]), np.random.default_rng([self.seed, 37])
         duration = max(self.n_frames, 1) / self.fps
         times = np.arange(max(self.n_frames, 1))[:: max(1, -(-self.n_frames // 240))] / self.fps
@@ -734,7 +733,7 @@ class SyntheticSequence:
                 half = np.array([0.22, 0.22, 0.45])
                 bodies.append(([Box(half, None, dynamic=True, textures=_chair(look, half))],
                                [lambda g: _local((0.0, 0.0, 0.45))]))
-            best, good = None, 0
+            best = None
             for _ in range(_PLAN_TRIES):
                 t = duration / 2 if kind == "drag" else tc + shape.uniform(-0.3, 0.3) * slot
                 movers = self._candidate(kind, bodies, float(t), shape, cams[np.argmin(np.abs(times - t))], flow)
@@ -742,8 +741,7 @@ class SyntheticSequence:
                                                 np.inf if best is None else best[0])
                 if best is None or cost < best[0]:
                     best = (cost, entries)
-                good += cost < _SCREEN_TIME
-                if good == 5:  # of five valid paths, the one taking least screen leaves most to the others
+                if cost == 0:
                     break
             planned.extend(best[1])
             placed[j] = [entry[0] for entry in best[1]]
@@ -854,7 +852,7 @@ class SyntheticSequence:
             rect = self._rects(cams, pos, rot, m.envelope, m.lift)
             share = (rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1]) / area
             seen = share > 0
-            cost += 10 * np.maximum(share - 0.35, 0.0).sum() + _SCREEN_TIME * share.mean()
+            cost += 10 * np.maximum(share - 0.35, 0.0).sum()
             for pose, half in furniture:
                 cost += 10 * _clash(centre[seen], rot[seen], m.envelope, pose[:3, 3], pose[:3, :3], half).sum()
             for other, _, other_seen, other_centre, other_rot, _ in planned:
