@@ -140,8 +140,9 @@ class DynamicConfig:
     # Features inside (dilated) dynamic-class boxes get at least this probability, fused like a
     # method: below the tracking threshold, so a still person's features may still track, but above
     # the landmark-admission threshold (backend.landmark_max_dynamic_prob), so nothing inside a
-    # person box enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 disables.
-    box_prior: float = 0.3
+    # person box enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 = off;
+    # the fused preset configs/dynamic_all.yaml uses 0.3.
+    box_prior: float = 0.0
     box_prior_dilate_px: int = 10
     # Optional folder for PNG mask overlays (empty = off).
     dump_masks_dir: str = ""

@@ -64,12 +64,14 @@ class _MapView:
 
 
 class System:
-    def __init__(self, config: SlamConfig, dynamic_filter: Optional[DynamicFilter] = None, sequence_name: str = ""):
+    def __init__(self, config: SlamConfig, dynamic_filter: Optional[DynamicFilter] = None, sequence_name: str = "",
+                 detector=None):
         self.config = config
         self.camera = PinholeCamera.from_config(config.camera)
         self.extractor = OrbExtractor(config.orb, self.camera)
         self.timer = ModuleTimer()
-        self.dynamic_filter = dynamic_filter or build_dynamic_filter(config, self.camera, self.timer, sequence_name)
+        self.dynamic_filter = dynamic_filter or build_dynamic_filter(config, self.camera, self.timer, sequence_name,
+                                                                     detector)
         self.tracker = Tracker(config.tracking, self.camera)
         self.mapper = LocalMapper(config.backend, config.keyframes, self.camera, config.tracking.dynamic_threshold)
         self._map_view = _MapView(self.mapper, config.tracking.local_keyframes, config.tracking.covisible_per_keyframe)

@@ -58,15 +58,14 @@ def build_method(name: str, config):
 
 
 def build_dynamic_filter(config, camera: PinholeCamera, timer: Optional[ModuleTimer] = None,
-                         sequence_name: str = "") -> DynamicFilter:
+                         sequence_name: str = "", detector=None) -> DynamicFilter:
     """The filter for ``config.dynamic``: the null filter, or the enabled methods and their fusion."""
-    if not config.dynamic.methods:
+    if not config.dynamic.methods and config.dynamic.box_prior <= 0:
         return StaticWorld()
     from frontend.dynamic.rejector import DynamicRejector
 
     methods = [build_method(name, config) for name in config.dynamic.methods]
-    detector = None
-    if any(m.needs_detector for m in methods):
+    if detector is None and (any(m.needs_detector for m in methods) or config.dynamic.box_prior > 0):
         from frontend.detector import build_detector
 
         detector = build_detector(config.dynamic.detector, config.dynamic.classes, sequence_name)

@@ -49,11 +49,15 @@ class DynamicRejector:
         self._last: Optional[tuple[DynamicContext, dict[str, MethodOutput]]] = None
         self._dump_dir = Path(cfg.dump_masks_dir) if cfg.dump_masks_dir else None
         self.last_mask: Optional[np.ndarray] = None
+        # The last frame's per-method outputs and fused probabilities, for diagnostics and evaluation.
+        self.last_outputs: dict[str, MethodOutput] = {}
+        self.last_fused: np.ndarray = np.zeros(0)
+        self.last_keypoints: np.ndarray = np.zeros((0, 2))
 
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
         ctx = DynamicContext(frame, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
-        if self.detector is not None and any(m.needs_detector for m in self.methods):
+        if self.detector is not None:  # built only when a method or the box prior needs it
             with self.timer.measure("dynamic.detector"):
                 ctx.detections = self.detector.detect(rgb, frame.timestamp)
         outputs: dict[str, MethodOutput] = {}
@@ -68,6 +72,7 @@ class DynamicRejector:
         self.stats.frames += 1
         self.stats.add("fused", int(np.sum(fused >= 0.5)))
         self._last = (ctx, outputs)
+        self.last_outputs, self.last_fused, self.last_keypoints = outputs, fused, frame.uv_raw
         self.last_mask = fused_pixel_mask(outputs, self.cfg.fusion, self._weights, ctx.gray.shape)
         if prior_mask is not None:
             self.last_mask = prior_mask if self.last_mask is None else np.maximum(self.last_mask, prior_mask)
