@@ -63,7 +63,7 @@ class CprConfig:
     score_points: int = 800             # source points averaged in R(j)
     score_candidates: int = 4           # nearest reference points searched per point for R(j)
     min_score_ratio: float = 1.0        # dynamic also needs R(j) > ratio * median(R); 1.0 = paper only
-    refine: bool = True                 # Algorithm 1 on every frame's output
+    refine: bool = False                # Algorithm 1 on every frame's output (off: raw mask, see cpr.py)
     keyframe_recompute: bool = False    # keyframes: recompute the mask against sigma_keyframe in end_frame
 
 

@@ -82,12 +82,14 @@ _OFFSETS = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij
 
 
 def mls_smooth(xyz: np.ndarray, radius: float, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """First-order moving least squares on a voxelised cloud: every point is projected onto the plane fitted
-    (Gaussian weights exp(-d^2/radius^2), d <= radius) to the points in the 3x3x3 voxels around its own.
+    """First-order moving least squares on a voxelised cloud (one point per ``voxel`` cell): every point is
+    projected onto the plane fitted (Gaussian weights exp(-d^2/radius^2), d <= radius) to the points in the
+    3x3x3 cells around its own.
 
-    Returns (smoothed points, keep, unit normals (0 where no plane)); keep is False for points with fewer than 3 neighbours (incl. itself),
-    which are outliers (PCL's MLS skips them too). The voxel neighbourhood replaces a radius search: exact
-    up to one voxel, and ~10x cheaper than a k-d tree query here."""
+    Returns (smoothed points, keep, unit normals (0 where no plane)); keep is False for points with fewer than
+    3 neighbours (itself included), which are outliers (PCL's MLS skips them too). The cell neighbourhood
+    replaces a radius search: it sees every neighbour closer than one cell (of those up to ``radius``), and
+    is ~10x cheaper than a k-d tree query here."""
     n = len(xyz)
     if n < 3:
         return xyz.copy(), np.zeros(n, bool), np.zeros((n, 3))
