@@ -36,7 +36,10 @@ def run_one(job: tuple[str, str, int, str, list[str]]) -> dict:
     files = [] if config_name == "none" else [config_name]
     try:
         config = resolve_run_config(seq, files, _parse_overrides(overrides))
-        config.seed = repeat  # repeats differ only in their seed
+        # Repeats differ only in their seeds: RANSAC's and every method's random choices.
+        config.seed = repeat
+        for method in ("cpr", "flow_epipolar", "depth_sdf"):
+            getattr(config.dynamic, method).seed = repeat
         dataset = TumDataset(seq, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
         summary = Pipeline(dataset, config, Path(output) / f"{seq.name}__{Path(config_name).stem}__{repeat}").run()
     except Exception as exc:  # a failed run is a row in the table, not a crashed sweep

@@ -70,6 +70,9 @@ trims the far end of a strongly leaning body near the box bottom. A chair beside
 "dragged" because the floor connects them within 10 cm steps (9 of 250 frames, none really moved).
 Algorithm 3 reuses 1-6 % of the dynamic features, also on slowly walking people whose inter-frame
 motion stays within 3 px of the homography; ``reuse_prob`` keeps them down-weighted.
+
+The segmentation helpers of Algorithms 1-2 are in ``frontend.dynamic.box_depth_segmentation`` and
+re-exported here.
 """
 from __future__ import annotations
 
@@ -80,125 +83,19 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontend.dynamic.base import Detection, DynamicContext, MethodOutput, keypoints_in_mask
+from frontend.dynamic.box_depth_segmentation import box_pixels, flood_fill, overlaps_enough, segment_box
+from frontend.dynamic.box_depth_segmentation import (eq8_filter, nearest_valid,  # noqa: F401  (re-exported)
+                                                     seed_points, side_distance)
 from frontend.matching import hamming_pairs
 from slam.dynamic_config import BoxDepthConfig, ClassGroups
 
-_SEED_SEARCH_PX = 4          # a seed on invalid depth moves to the nearest valid pixel this close
 _MAX_HAMMING = 50            # descriptor distance cap for frame-to-frame matching (ORB-SLAM TH_LOW)
 _MATCH_RADIUS_PX = 40.0      # frame-to-frame matches are searched this close to the previous position
 _MIN_STATIC_MATCHES = 8      # static matches needed to fit the homography
-_MAX_FILL_COMPONENTS = 64    # flood fills per passive box (one per depth-connected piece of seeds)
-_FILL_FLAGS = 8 | cv2.FLOODFILL_MASK_ONLY | (255 << 8)   # 8-connectivity, floating range, mask value 255
 
 
 # --------------------------------------------------------------------------------------------
-# Geometry helpers (public for tests)
-
-
-def box_pixels(det: Detection, width: int, height: int) -> Optional[tuple[int, int, int, int]]:
-    """Integer pixel bounds (x0, y0, x1, y1), x1/y1 exclusive, clipped to the image; None if empty."""
-    x0 = int(np.clip(np.floor(det.x0), 0, width))
-    y0 = int(np.clip(np.floor(det.y0), 0, height))
-    x1 = int(np.clip(np.ceil(det.x1), 0, width))
-    y1 = int(np.clip(np.ceil(det.y1), 0, height))
-    if x1 - x0 < 1 or y1 - y0 < 1:
-        return None
-    return x0, y0, x1, y1
-
-
-def seed_points(h: int, w: int) -> list[tuple[int, int]]:
-    """The five seeds (row, col) of a h x w box, in the paper's order: centre, then the midpoints of
-    the upper, lower, left and right half-axes."""
-    rc, cc = h // 2, w // 2
-    pts = [(rc, cc), (h // 4, cc), (min(h - 1, (3 * h) // 4), cc), (rc, w // 4), (rc, min(w - 1, (3 * w) // 4))]
-    return pts
-
-
-def flood_fill(depth: np.ndarray, seeds: np.ndarray, omega: float,
-               max_components: int = _MAX_FILL_COMPONENTS) -> np.ndarray:
-    """Pixels reached from any of ``seeds`` ((K,2) row, col) by 8-neighbour steps whose depth change
-    is strictly below ``omega`` (neighbour-to-neighbour, Algorithm 1). Invalid depth (<= 0 or not
-    finite) is never entered; seeds on invalid depth are ignored. Returns a bool mask of ``depth``'s
-    shape."""
-    img = np.ascontiguousarray(depth, dtype=np.float32)
-    h, w = img.shape
-    mask = np.zeros((h + 2, w + 2), np.uint8)
-    inner = mask[1:-1, 1:-1]
-    inner[~(np.isfinite(img) & (img > 0))] = 1
-    img = np.where(inner == 1, np.float32(0), img)     # floodFill must not see NaN
-    seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
-    if len(seeds):
-        seeds = seeds[(seeds[:, 0] >= 0) & (seeds[:, 0] < h) & (seeds[:, 1] >= 0) & (seeds[:, 1] < w)]
-    # OpenCV accepts |diff| <= bound; the paper's test is strict.
-    diff = float(np.nextafter(np.float32(omega), np.float32(0)))
-    for _ in range(max_components):
-        if not len(seeds):
-            break
-        seeds = seeds[inner[seeds[:, 0], seeds[:, 1]] == 0]     # not yet filled, not invalid
-        if not len(seeds):
-            break
-        r, c = int(seeds[0, 0]), int(seeds[0, 1])
-        cv2.floodFill(img, mask, (c, r), 0, diff, diff, _FILL_FLAGS)
-    return inner == 255
-
-
-def nearest_valid(depth: np.ndarray, row: int, col: int, radius: int = _SEED_SEARCH_PX) -> Optional[tuple[int, int]]:
-    """``(row, col)`` if its depth is valid, else the nearest valid pixel within ``radius``, else None."""
-    if depth[row, col] > 0:
-        return row, col
-    h, w = depth.shape
-    r0, r1, c0, c1 = max(0, row - radius), min(h, row + radius + 1), max(0, col - radius), min(w, col + radius + 1)
-    rr, cc = np.nonzero(depth[r0:r1, c0:c1] > 0)
-    if not len(rr):
-        return None
-    k = int(np.argmin((rr + r0 - row) ** 2 + (cc + c0 - col) ** 2))
-    return int(rr[k] + r0), int(cc[k] + c0)
-
-
-def side_distance(h: int, w: int) -> np.ndarray:
-    """G_i (Eqs. 5-7): each pixel centre's distance (px) to the nearest side of an h x w box."""
-    gy = np.minimum(np.arange(h) + 0.5, h - np.arange(h) - 0.5)
-    gx = np.minimum(np.arange(w) + 0.5, w - np.arange(w) - 0.5)
-    return np.minimum(gy[:, None], gx[None, :])
-
-
-def eq8_filter(region: np.ndarray, depth: np.ndarray, alpha: float, omega: float) -> np.ndarray:
-    """Remove the pixels of ``region`` (bool, box crop) with ``alpha * d_ave - d_i + omega * G_i < 0``."""
-    if not region.any():
-        return region
-    d_ave = float(depth[region].mean())                                         # Eq. 3
-    keep = (alpha * d_ave - depth) + omega * side_distance(*depth.shape) >= 0.0   # Eqs. 4-8
-    return region & keep
-
-
-def segment_box(depth: np.ndarray, cfg: BoxDepthConfig) -> tuple[np.ndarray, int]:
-    """Algorithm 1 on the depth crop of one PDT box. Returns the segment (bool, crop shape) and the
-    index of the accepted seed (0-4), or -1 when no seed passed the height test (then the fill with
-    the largest vertical span is returned)."""
-    h, w = depth.shape
-    best, best_span, accepted = np.zeros((h, w), bool), -1, -1
-    for k, (r, c) in enumerate(seed_points(h, w)):
-        seed = nearest_valid(depth, r, c)
-        if seed is None:
-            continue
-        region = flood_fill(depth, np.array([seed]), cfg.omega_pixel)
-        rows = np.flatnonzero(region.any(axis=1))
-        span = int(rows[-1] - rows[0]) if len(rows) else -1
-        if span > best_span:
-            best, best_span = region, span
-        if span > cfg.height_ratio * h:
-            best, accepted = region, k
-            break
-    best = eq8_filter(best, depth, cfg.alpha, cfg.omega)
-    return _absorb_invalid(best, depth, cfg.invalid_fill_px), accepted
-
-
-def _absorb_invalid(region: np.ndarray, depth: np.ndarray, radius: int) -> np.ndarray:
-    if radius <= 0 or not region.any():
-        return region
-    k = 2 * int(radius) + 1
-    near = cv2.dilate(region.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
-    return region | (near & ~(depth > 0))
+# Frame-to-frame matching and composite values (Algorithm 3; public for tests)
 
 
 def composite(img: np.ndarray, uv: np.ndarray, skip_zero: bool = False) -> np.ndarray:
@@ -295,51 +192,10 @@ class BoxDepthMethod:
             self._prev = None
             return MethodOutput.abstain(n)
         depth = np.asarray(ctx.depth, dtype=np.float32)
-        h, w = depth.shape[:2]
-        pdt = [d for d in ctx.detections if d.class_id in self._dynamic]
-        passive = [d for d in ctx.detections if d.class_id in self._passive_prob]
-
-        # Algorithm 1: PDT pixels.
-        mask = np.zeros((h, w), bool)
-        pdt_boxes, fallback = [], 0
-        for det in pdt:
-            b = box_pixels(det, w, h)
-            if b is None:
-                continue
-            x0, y0, x1, y1 = b
-            seg, accepted = segment_box(depth[y0:y1, x0:x1], self.cfg)
-            fallback += accepted < 0
-            mask[y0:y1, x0:x1] |= seg
-            pdt_boxes.append(b)
-
-        prob = np.zeros(n)
         uv = frame.uv_raw
-        # Algorithm 2: passive objects connected in depth to a PDT.
-        passive_mask = np.zeros((h, w), bool)
-        dragged = 0
-        for det in passive:
-            b = box_pixels(det, w, h)
-            if b is None or not pdt_boxes:
-                continue
-            p_pas = self._passive_prob[det.class_id]
-            bound = self.cfg.k_passive * p_pas
-            if not _overlaps_enough(b, pdt_boxes, bound):                          # Eqs. 9-10
-                continue
-            x0, y0, x1, y1 = b
-            seeds_in = mask[y0:y1, x0:x1]
-            if not seeds_in.any():
-                continue
-            crop = depth[y0:y1, x0:x1]
-            filled = flood_fill(crop, np.argwhere(seeds_in), self.cfg.omega_pixel_passive)
-            obj = filled & ~seeds_in
-            n_box, n_pas = (y1 - y0) * (x1 - x0), int(obj.sum())
-            if n_pas == 0 or n_box / n_pas > bound:                                # Eq. 11
-                continue
-            dragged += 1
-            passive_mask[y0:y1, x0:x1] |= obj
-            inside = (uv[:, 0] >= x0) & (uv[:, 0] < x1) & (uv[:, 1] >= y0) & (uv[:, 1] < y1)
-            prob[inside] = np.maximum(prob[inside], p_pas)
-
+        # Algorithm 1: PDT pixels; Algorithm 2: passive objects connected in depth to a PDT.
+        mask, pdt_boxes, fallback = self._segment_targets(ctx.detections, depth)
+        prob, passive_mask, dragged = self._dragged_passives(ctx.detections, depth, mask, pdt_boxes, uv, n)
         seg_mask = mask | passive_mask
         if n:
             prob = np.maximum(prob, keypoints_in_mask(seg_mask, uv).astype(float))
@@ -355,6 +211,69 @@ class BoxDepthMethod:
         info = dict(pdt_boxes=len(pdt_boxes), fallback=int(fallback), dragged=dragged,
                     dynamic=int(dyn.sum()), reused=int(reused.sum()), static_matches=n_static_matches)
         return MethodOutput(prob, seg_mask.astype(np.float32), info)
+
+    def _segment_targets(self, detections: list[Detection], depth: np.ndarray) -> tuple[np.ndarray, list, int]:
+        """Algorithm 1: the PDT pixels (HxW bool), the PDT boxes in pixels, and how many boxes had no
+        seed whose fill passed the height test (``info['fallback']``)."""
+        h, w = depth.shape[:2]
+        mask = np.zeros((h, w), bool)
+        pdt_boxes, fallback = [], 0
+        for det in detections:
+            if det.class_id not in self._dynamic:
+                continue
+            b = box_pixels(det, w, h)
+            if b is None:
+                continue
+            x0, y0, x1, y1 = b
+            seg, accepted = segment_box(depth[y0:y1, x0:x1], self.cfg)
+            fallback += accepted < 0
+            mask[y0:y1, x0:x1] |= seg
+            pdt_boxes.append(b)
+        return mask, pdt_boxes, fallback
+
+    def _dragged_passives(self, detections: list[Detection], depth: np.ndarray, mask: np.ndarray,
+                          pdt_boxes: list, uv: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """Algorithm 2: passive objects connected in depth to a PDT. Returns the keypoint probabilities
+        (``p_pas`` inside a dragged box, else 0), the dragged object pixels and how many were dragged."""
+        h, w = depth.shape[:2]
+        prob = np.zeros(n)
+        passive_mask = np.zeros((h, w), bool)
+        dragged = 0
+        for det in detections:
+            if det.class_id not in self._passive_prob:
+                continue
+            b = box_pixels(det, w, h)
+            if b is None or not pdt_boxes:
+                continue
+            p_pas = self._passive_prob[det.class_id]
+            obj = self._dragged_pixels(b, p_pas, depth, mask, pdt_boxes)
+            if obj is None:
+                continue
+            dragged += 1
+            x0, y0, x1, y1 = b
+            passive_mask[y0:y1, x0:x1] |= obj
+            inside = (uv[:, 0] >= x0) & (uv[:, 0] < x1) & (uv[:, 1] >= y0) & (uv[:, 1] < y1)
+            prob[inside] = np.maximum(prob[inside], p_pas)
+        return prob, passive_mask, dragged
+
+    def _dragged_pixels(self, b: tuple[int, int, int, int], p_pas: float, depth: np.ndarray, mask: np.ndarray,
+                        pdt_boxes: list) -> Optional[np.ndarray]:
+        """The pixels (box crop, bool) of the passive object in box ``b`` that a PDT drags along, or None
+        when it overlaps no PDT box enough (Eqs. 9-10) or too little of the box fills from the PDT pixels
+        in it (Eq. 11)."""
+        bound = self.cfg.k_passive * p_pas
+        if not overlaps_enough(b, pdt_boxes, bound):                               # Eqs. 9-10
+            return None
+        x0, y0, x1, y1 = b
+        seeds_in = mask[y0:y1, x0:x1]
+        if not seeds_in.any():
+            return None
+        filled = flood_fill(depth[y0:y1, x0:x1], np.argwhere(seeds_in), self.cfg.omega_pixel_passive)
+        obj = filled & ~seeds_in
+        n_box, n_pas = (y1 - y0) * (x1 - x0), int(obj.sum())
+        if n_pas == 0 or n_box / n_pas > bound:                                    # Eq. 11
+            return None
+        return obj
 
     def _reuse(self, ctx: DynamicContext, dyn: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, int]:
         """Algorithm 3: which of the current dynamic features are effective (still) features."""
@@ -396,14 +315,3 @@ class BoxDepthMethod:
                   is_keyframe: bool) -> None:
         """The previous-frame state for Algorithm 3 is kept in ``process``; nothing to do here."""
         return None
-
-
-def _overlaps_enough(b: tuple[int, int, int, int], pdt_boxes: list, bound: float) -> bool:
-    """Eq. 9 against any PDT box: A_pas / (A_pas ∩ A_act) <= bound."""
-    x0, y0, x1, y1 = b
-    area = (x1 - x0) * (y1 - y0)
-    for a0, b0, a1, b1 in pdt_boxes:
-        inter = max(0, min(x1, a1) - max(x0, a0)) * max(0, min(y1, b1) - max(y0, b0))
-        if inter > 0 and area / inter <= bound:
-            return True
-    return False

@@ -248,69 +248,12 @@ class FlowEpipolarMethod:
         frame = ctx.frame
         n = len(frame)
         h, w = ctx.gray.shape[:2]
-        rows, cols = max(int(cfg.sub_box_rows), 1), max(int(cfg.sub_box_cols), 1)
         boxes = self._boxes(ctx.detections)
         kp = np.asarray(frame.uv_raw, float).reshape(-1, 2)
-
-        # --- Algorithm 1, lines 1-7: LK flow, RANSAC F, epipolar distance -------------------------
-        # The flow only feeds the sub-box ratios: without boxes the output is the same, so skip it.
-        if boxes:
-            x0, cur_raw, x1, ok = self.track(ctx.gray, ctx.camera)
-        else:
-            x0 = cur_raw = x1 = np.zeros((0, 2))
-            ok = np.zeros(0, bool)
-        in_any_box = np.zeros(len(cur_raw), bool)
-        for b in boxes:
-            in_any_box |= b.contains(cur_raw)
-        sel = ok & ~in_any_box if cfg.f_outside_boxes else ok
-        if sel.sum() < cfg.min_tracks:
-            sel = ok
-        F = self.fundamental(x0[sel], x1[sel]) if sel.any() else None
-        dyn_track = np.zeros(len(cur_raw), bool)
-        if F is not None:
-            dist = np.full(len(cur_raw), np.inf)
-            dist[ok] = epipolar_distance(F, x0[ok], x1[ok])
-            dyn_track = ok & (dist > cfg.epipolar_px)
-        evidence = F is not None or not boxes
-
-        # --- Algorithm 1, lines 8-14 and Eqs. 1-6: dynamic sub-boxes -------------------------------
-        region_mask = np.zeros((h, w), bool)
-        kp_dynamic = np.zeros(n, bool)
-        n_sub = 0
-        for b in boxes:
-            if evidence:
-                inside = ok & b.contains(cur_raw)
-                idx = sub_box_index(b, cur_raw[inside], rows, cols)
-                k = np.bincount(idx, minlength=rows * cols)
-                m = np.bincount(idx, weights=dyn_track[inside].astype(float), minlength=rows * cols)
-                dp = np.divide(m, k, out=np.zeros(rows * cols), where=k > 0)
-                dynamic_sub = dp > cfg.region_ratio
-            else:
-                dynamic_sub = np.ones(rows * cols, bool)    # no motion evidence: detections only
-            if not dynamic_sub.any():
-                continue
-            n_sub += int(dynamic_sub.sum())
-            kin = b.contains(kp)
-            if kin.any():
-                kp_dynamic[np.flatnonzero(kin)[dynamic_sub[sub_box_index(b, kp[kin], rows, cols)]]] = True
-            xs = b.x0 + b.width * np.arange(cols + 1) / cols
-            ys = b.y0 + b.height * np.arange(rows + 1) / rows
-            for s in np.flatnonzero(dynamic_sub):
-                r, c = divmod(int(s), cols)
-                # Pixel p is inside when x0 <= p < x1, as Detection.contains for integer points.
-                c0, c1 = np.clip(np.ceil([xs[c], xs[c + 1]]).astype(int), 0, w)
-                r0, r1 = np.clip(np.ceil([ys[r], ys[r + 1]]).astype(int), 0, h)
-                region_mask[r0:r1, c0:c1] = True
-
-        # --- Algorithm 2: Bayesian region probability on a grid ------------------------------------
-        g = max(int(cfg.grid), 1)
-        re, ce = grid_edges(h, g), grid_edges(w, g)
-        coverage = cell_coverage(region_mask, re, ce)
-        likelihood = np.where(coverage > cfg.cover_ratio, cfg.likelihood_dynamic, cfg.likelihood_static)
-        posterior = bayes_posterior(likelihood, self.prior())
-        c = float(np.clip(cfg.prob_clamp, 0.0, 0.5))
-        self._pending_posterior = np.clip(posterior, c, 1.0 - c)
-        cell_prob = threshold_to_half(posterior, cfg.remove_threshold)
+        cur_raw, ok, dyn_track, evidence = self._dynamic_tracks(ctx, boxes)
+        region_mask, kp_dynamic, n_sub = self._dynamic_sub_boxes(boxes, cur_raw, ok, dyn_track, evidence,
+                                                                 kp, n, (h, w))
+        posterior, cell_prob, re, ce = self._grid_probability(region_mask)
 
         prob = np.zeros(n)
         if n:
@@ -332,6 +275,81 @@ class FlowEpipolarMethod:
         }
         return MethodOutput(prob, mask, info)
 
+    def _dynamic_tracks(self, ctx: DynamicContext,
+                        boxes: list[Detection]) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+        """Algorithm 1, lines 1-7: LK flow, RANSAC F, epipolar distance. Returns the tracked positions
+        (raw pixels), the good-track flags, the tracks far from their epipolar line, and whether there is
+        motion evidence (an F, or no boxes to judge)."""
+        cfg = self.cfg
+        # The flow only feeds the sub-box ratios: without boxes the output is the same, so skip it.
+        if boxes:
+            x0, cur_raw, x1, ok = self.track(ctx.gray, ctx.camera)
+        else:
+            x0 = cur_raw = x1 = np.zeros((0, 2))
+            ok = np.zeros(0, bool)
+        in_any_box = np.zeros(len(cur_raw), bool)
+        for b in boxes:
+            in_any_box |= b.contains(cur_raw)
+        sel = ok & ~in_any_box if cfg.f_outside_boxes else ok
+        if sel.sum() < cfg.min_tracks:
+            sel = ok
+        F = self.fundamental(x0[sel], x1[sel]) if sel.any() else None
+        dyn_track = np.zeros(len(cur_raw), bool)
+        if F is not None:
+            dist = np.full(len(cur_raw), np.inf)
+            dist[ok] = epipolar_distance(F, x0[ok], x1[ok])
+            dyn_track = ok & (dist > cfg.epipolar_px)
+        return cur_raw, ok, dyn_track, F is not None or not boxes
+
+    def _dynamic_sub_boxes(self, boxes: list[Detection], cur_raw: np.ndarray, ok: np.ndarray,
+                           dyn_track: np.ndarray, evidence: bool, kp: np.ndarray, n: int,
+                           shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, int]:
+        """Algorithm 1, lines 8-14 and Eqs. 1-6: the pixels of the dynamic sub-boxes (HxW bool), the ``n``
+        keypoints ``kp`` inside them, and how many sub-boxes are dynamic. Without motion evidence every
+        sub-box of a box is (detections only)."""
+        rows, cols = max(int(self.cfg.sub_box_rows), 1), max(int(self.cfg.sub_box_cols), 1)
+        region_mask = np.zeros(shape, bool)
+        kp_dynamic = np.zeros(n, bool)
+        n_sub = 0
+        for b in boxes:
+            if evidence:
+                dynamic_sub = self._moving_sub_boxes(b, cur_raw, ok, dyn_track, rows, cols)
+            else:
+                dynamic_sub = np.ones(rows * cols, bool)    # no motion evidence: detections only
+            if not dynamic_sub.any():
+                continue
+            n_sub += int(dynamic_sub.sum())
+            kin = b.contains(kp)
+            if kin.any():
+                kp_dynamic[np.flatnonzero(kin)[dynamic_sub[sub_box_index(b, kp[kin], rows, cols)]]] = True
+            _fill_sub_boxes(region_mask, b, dynamic_sub, rows, cols)
+        return region_mask, kp_dynamic, n_sub
+
+    def _moving_sub_boxes(self, b: Detection, cur_raw: np.ndarray, ok: np.ndarray, dyn_track: np.ndarray,
+                          rows: int, cols: int) -> np.ndarray:
+        """Eqs. 1-6: per sub-box (row-major), whether its share of dynamic tracks exceeds ``region_ratio``."""
+        inside = ok & b.contains(cur_raw)
+        idx = sub_box_index(b, cur_raw[inside], rows, cols)
+        k = np.bincount(idx, minlength=rows * cols)
+        m = np.bincount(idx, weights=dyn_track[inside].astype(float), minlength=rows * cols)
+        dp = np.divide(m, k, out=np.zeros(rows * cols), where=k > 0)
+        return dp > self.cfg.region_ratio
+
+    def _grid_probability(self, region_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Algorithm 2: Bayesian region probability on a grid. Returns the cell posteriors, the cell
+        probabilities mapped so that 0.5 is the removal threshold, and the grid's row and column edges;
+        keeps the clamped posterior for ``end_frame`` to add to the history."""
+        cfg = self.cfg
+        h, w = region_mask.shape
+        g = max(int(cfg.grid), 1)
+        re, ce = grid_edges(h, g), grid_edges(w, g)
+        coverage = cell_coverage(region_mask, re, ce)
+        likelihood = np.where(coverage > cfg.cover_ratio, cfg.likelihood_dynamic, cfg.likelihood_static)
+        posterior = bayes_posterior(likelihood, self.prior())
+        c = float(np.clip(cfg.prob_clamp, 0.0, 0.5))
+        self._pending_posterior = np.clip(posterior, c, 1.0 - c)
+        return posterior, threshold_to_half(posterior, cfg.remove_threshold), re, ce
+
     def end_frame(self, ctx: DynamicContext, output: MethodOutput, T_cw: Optional[np.ndarray],
                   is_keyframe: bool) -> None:
         """Keep this frame's grey image and keypoints for the flow, and its grid posterior."""
@@ -341,3 +359,16 @@ class FlowEpipolarMethod:
         if self._pending_posterior is not None:
             self._history.append(self._pending_posterior)
             self._pending_posterior = None
+
+
+def _fill_sub_boxes(region_mask: np.ndarray, b: Detection, dynamic_sub: np.ndarray, rows: int, cols: int) -> None:
+    """Set the pixels of box ``b``'s dynamic sub-boxes (flags row-major) in ``region_mask``."""
+    h, w = region_mask.shape
+    xs = b.x0 + b.width * np.arange(cols + 1) / cols
+    ys = b.y0 + b.height * np.arange(rows + 1) / rows
+    for s in np.flatnonzero(dynamic_sub):
+        r, c = divmod(int(s), cols)
+        # Pixel p is inside when x0 <= p < x1, as Detection.contains for integer points.
+        c0, c1 = np.clip(np.ceil([xs[c], xs[c + 1]]).astype(int), 0, w)
+        r0, r1 = np.clip(np.ceil([ys[r], ys[r + 1]]).astype(int), 0, h)
+        region_mask[r0:r1, c0:c1] = True
