@@ -10,7 +10,8 @@ A results folder holds:
 - ``keyframes.txt``            optimised keyframe poses (TUM);
 - ``groundtruth.txt``          for generated sequences only, the exact camera path;
 - ``evaluation.json``          ATE / RPE when ground truth exists;
-- ``summary.json``             counts, per-module milliseconds per frame, ATE.
+- ``summary.json``             counts, per-module milliseconds per frame, ATE;
+- ``dynamic.csv``              with dynamic handling on: features flagged per frame, per method and fused.
 Final files are written atomically, also when the run is interrupted.
 """
 from __future__ import annotations
@@ -127,8 +128,18 @@ class Pipeline:
         stats = getattr(self.system.dynamic_filter, "stats", None)
         if stats is not None:
             self.summary.dynamic_flagged = stats.summary()
+            self._write_dynamic_counts(stats.flagged)
         self.summary.skipped_files = [f"{p}: {why}" for p, why in getattr(self.dataset, "skipped", [])]
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
+
+    def _write_dynamic_counts(self, flagged: dict[str, list[int]]) -> None:
+        """dynamic.csv: per frame, how many features each method and the fusion flagged."""
+        names = list(flagged)
+        stamps = self.system.trajectory()[0]
+        rows = ["timestamp," + ",".join(names)]
+        for i in range(min([len(stamps)] + [len(v) for v in flagged.values()])):
+            rows.append(f"{stamps[i]:.6f}," + ",".join(str(flagged[n][i]) for n in names))
+        write_text_atomic(self.output_dir / "dynamic.csv", "\n".join(rows) + "\n")
 
     def _run_evaluation(self) -> None:
         gt = self.dataset.groundtruth()

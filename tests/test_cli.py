@@ -304,3 +304,18 @@ def test_run_max_frames(capsys, synthetic_folder, tmp_path):
     assert summary["frames"] == 12 and summary["tracked"] == 12
     assert len(data_lines(tmp_path / "out" / "trajectory.txt")) == 12
     assert "12 frames" in out
+
+
+def test_dynamic_run_writes_per_frame_flag_counts(tmp_path):
+    """A run with a detector-free dynamic method writes dynamic.csv with one row per frame."""
+    from slam.cli import main
+
+    out = tmp_path / "dyn"
+    assert main(["demo", "--frames", "12", "-o", str(out), "-q", "--set", "dynamic.methods=[cpr]",
+                 "--set", "dynamic.fusion=single"]) == 0
+    lines = (out / "dynamic.csv").read_text().strip().splitlines()
+    assert lines[0] == "timestamp,cpr,fused"
+    assert len(lines) == 13
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["dynamic_methods"] == ["cpr"] and "cpr" in summary["dynamic_flagged"]
+    assert "dynamic.cpr" in summary["timing_ms"]
