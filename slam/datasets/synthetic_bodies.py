@@ -141,13 +141,21 @@ def _person(rng: np.random.Generator, height: float) -> tuple[list[Box], list[Ca
 
     torso_tex = _paint(torso, shirt)
     _shapes(torso_tex[1], rng, int(rng.integers(1, 4)), 0.04, 0.14, (0.25, 0.3, 0.75, 0.8))  # front print
+    # Folds, seams, buttons and logos: real clothes carry corners that ORB finds, which the methods
+    # relying on the person's own features (depth layers, flow) need.
+    details = np.random.default_rng(int(rng.integers(2**31)))
+    for face in torso_tex:
+        _shapes(face, details, 12, 0.01, 0.04)
     boxes = [Box(torso, None, dynamic=True, textures=torso_tex),
              Box(head, None, dynamic=True, textures=_paint(head, head_colour))]
     locals_ = [lambda g: _local((0, 0, hip + torso[2] + bob(g))),
-               lambda g: _local((0, 0, hip + 2 * torso[2] + 0.03 * k + head[2] + bob(g)))]
+               lambda g: _local((0, 0, hip + 2 * torso[2] + head[2] + bob(g)))]  # head on the shoulders: no gap
     for side in (1, -1):
         leg = np.array([0.085, 0.08, leg_h])
-        boxes.append(Box(leg, None, dynamic=True, textures=_paint(leg, trousers)))
+        leg_tex = _paint(leg, trousers)
+        for face in leg_tex:
+            _shapes(face, details, 6, 0.01, 0.03)
+        boxes.append(Box(leg, None, dynamic=True, textures=leg_tex))
         locals_.append(lambda g, side=side: _local((0, 0.085 * side, hip + bob(g)), side * swing_leg * np.sin(g),
                                                    leg_h))
     for side in (1, -1):
