@@ -15,7 +15,7 @@ import numpy as np
 
 from frontend.dynamic.base import keypoints_in_mask
 from frontend.dynamic.oracle import precision_recall, synthetic_oracle
-from slam.config import SlamConfig, apply_overrides
+from slam.config import SlamConfig, apply_overrides, apply_yaml
 from slam.datasets import SyntheticSequence
 from slam.system import System
 
@@ -36,13 +36,19 @@ class ClassificationScores:
         return "\n".join(lines)
 
 
-def synthetic_config(sequence: SyntheticSequence, methods: list[str], **overrides) -> SlamConfig:
+def synthetic_config(sequence: SyntheticSequence, methods: list[str] | None = None, preset: str | None = None,
+                     **overrides) -> SlamConfig:
+    """The generated sequence's camera, then ``preset`` (e.g. "dynamic_all"), then ``methods`` (if
+    given, with single/noisy-OR fusion), then dotted ``overrides``."""
     fx, fy, cx, cy = sequence.intrinsics
     config = SlamConfig()
-    apply_overrides(config, {"camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
-                             "camera.width": sequence.width, "camera.height": sequence.height,
-                             "dynamic.methods": methods, "dynamic.fusion": "single" if len(methods) == 1 else "noisy_or",
-                             **overrides})
+    if preset is not None:
+        apply_yaml(config, preset)
+    camera = {"camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
+              "camera.width": sequence.width, "camera.height": sequence.height}
+    if methods is not None:
+        camera.update({"dynamic.methods": methods, "dynamic.fusion": "single" if len(methods) == 1 else "noisy_or"})
+    apply_overrides(config, {**camera, **overrides})
     return config
 
 
