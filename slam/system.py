@@ -104,8 +104,10 @@ class System:
         """When moving objects hold most features, add features from the static rest of the image:
         the 1000-feature budget otherwise goes to the people and tracking starves."""
         threshold = self.config.tracking.dynamic_threshold
+        if np.sum(frame.dynamic_prob < threshold) >= self.config.tracking.min_static_features:
+            return frame
         mask = getattr(self.dynamic_filter, "last_mask", None)
-        if mask is None or np.sum(frame.dynamic_prob < threshold) >= self.config.tracking.min_static_features:
+        if mask is None:
             return frame
         # Only where the new features could become landmarks: outside person boxes and masks.
         admissible = min(threshold, self.config.backend.landmark_max_dynamic_prob)

@@ -48,7 +48,8 @@ class DynamicRejector:
         self._weights = [getattr(cfg, m.name).weight for m in methods]
         self._last: Optional[tuple[DynamicContext, dict[str, MethodOutput]]] = None
         self._dump_dir = Path(cfg.dump_masks_dir) if cfg.dump_masks_dir else None
-        self.last_mask: Optional[np.ndarray] = None
+        self._mask_inputs: Optional[tuple] = None
+        self._fused_mask: Optional[np.ndarray] = None
         # The last frame's per-method outputs and fused probabilities, for diagnostics and evaluation.
         self.last_outputs: dict[str, MethodOutput] = {}
         self.last_fused: np.ndarray = np.zeros(0)
@@ -73,12 +74,23 @@ class DynamicRejector:
         self.stats.add("fused", int(np.sum(fused >= 0.5)))
         self._last = (ctx, outputs)
         self.last_outputs, self.last_fused, self.last_keypoints = outputs, fused, frame.uv_raw
-        self.last_mask = fused_pixel_mask(outputs, self.cfg.fusion, self._weights, ctx.gray.shape)
-        if prior_mask is not None:
-            self.last_mask = prior_mask if self.last_mask is None else np.maximum(self.last_mask, prior_mask)
+        self._mask_inputs = (outputs, ctx.gray.shape, prior_mask)
+        self._fused_mask = None
         if self._dump_dir is not None:
             self._dump(ctx, outputs, fused)
         return fused
+
+    @property
+    def last_mask(self) -> Optional[np.ndarray]:
+        """The last frame's fused pixel mask, computed on first use: fusing four full-resolution
+        masks costs ~10 ms and is needed only when static features run short (and for overlays)."""
+        if self._fused_mask is None and self._mask_inputs is not None:
+            outputs, shape, prior = self._mask_inputs
+            mask = fused_pixel_mask(outputs, self.cfg.fusion, self._weights, shape)
+            if prior is not None:
+                mask = prior if mask is None else np.maximum(mask, prior)
+            self._fused_mask = mask
+        return self._fused_mask
 
     def _box_prior_mask(self, ctx: DynamicContext) -> Optional[np.ndarray]:
         """``box_prior`` inside every dilated dynamic-class box (None when off or no detections)."""
