@@ -178,10 +178,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from slam.datasets import DatasetError
     from slam.evaluation import EvaluationError
     from slam.trajectory import TrajectoryFormatError
+    from frontend.detector import DetectorError
 
     try:
         return args.func(args)
-    except (ConfigError, DatasetError, EvaluationError, TrajectoryFormatError, FileNotFoundError) as exc:
+    except (ConfigError, DatasetError, EvaluationError, TrajectoryFormatError, DetectorError,
+            FileNotFoundError) as exc:
         print(f"dynslam {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
 

@@ -319,3 +319,21 @@ def test_dynamic_run_writes_per_frame_flag_counts(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["dynamic_methods"] == ["cpr"] and "cpr" in summary["dynamic_flagged"]
     assert "dynamic.cpr" in summary["timing_ms"]
+
+
+def test_missing_detector_model_is_a_clear_error(tmp_path, capsys):
+    from slam.cli import main
+
+    missing = tmp_path / "nowhere" / "yolox.onnx"
+    code = main(["demo", "--frames", "3", "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_box_depth",
+                 "--set", f"dynamic.detector.path={missing}"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "error" in err
+
+
+def test_detector_free_method_needs_no_model(tmp_path, monkeypatch):
+    from slam.cli import main
+
+    monkeypatch.setenv("DYNSLAM_DETECTOR_MODEL", str(tmp_path / "absent.onnx"))
+    assert main(["demo", "--frames", "4", "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_cpr"]) == 0
