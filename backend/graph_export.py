@@ -1,0 +1,293 @@
+"""Export the keyframe pose graph to g2o text and to a JSON document.
+
+Two writers share one edge type, :class:`GraphEdge`::
+
+    from backend.graph_export import graph_edges_from_mapper, export_g2o, export_json, mapper_keyframes
+    edges = graph_edges_from_mapper(system.mapper)                # odometry + covisibility edges
+    ids, stamps, poses = mapper_keyframes(system.mapper)
+    export_g2o("graph.g2o", ids, poses, edges)                    # gtsam.readG2o(path, True) reads it
+    export_json("graph.json", ids, stamps, poses, edges)
+
+Conventions
+-----------
+* Poses are 4x4 camera-to-world matrices (``T_wc``), as everywhere in dynslam. The rotation is
+  re-orthonormalised before it is written.
+* ``GraphEdge.T_ab`` is pose b seen from pose a, ``T_wa^-1 @ T_wb`` (GTSAM's ``BetweenFactorPose3``
+  measurement and g2o's ``EDGE_SE3:QUAT`` measurement).
+* ``GraphEdge.information`` is a symmetric 6x6 matrix in **GTSAM's tangent order, rotation first**
+  ``(rx, ry, rz, tx, ty, tz)``, the order ``FactorGraphBackend.add_relative_pose`` uses for its sigmas.
+  g2o stores the information translation first ``(tx, ty, tz, rx, ry, rz)``; :func:`export_g2o`
+  permutes it, and ``gtsam.readG2o`` permutes it back, so the noise model GTSAM builds from the file
+  has exactly ``GraphEdge.information`` as its information matrix. (Only the order is converted: like
+  GTSAM's own reader/writer, no rescaling between g2o's quaternion-vector rotation parametrisation and
+  GTSAM's rotation vector is applied.)
+
+g2o format (3-D), one line per vertex / edge::
+
+    VERTEX_SE3:QUAT id x y z qx qy qz qw
+    EDGE_SE3:QUAT a b x y z qx qy qz qw  I11 I12 I13 I14 I15 I16 I22 ... I66   (upper triangle, row-major,
+                                                                             translation first)
+
+JSON schema (``format`` "dynslam-graph", ``version`` 1)::
+
+    {
+      "format": "dynslam-graph",
+      "version": 1,
+      "pose_convention": "T_wc camera-to-world; edge t/q is T_ab = T_wa^-1 T_wb",
+      "information_order": ["rx", "ry", "rz", "tx", "ty", "tz"],
+      "keyframes": [{"id": int, "timestamp": float, "t": [x, y, z], "q": [qx, qy, qz, qw]}, ...],
+      "edges": [{"a": int, "b": int, "kind": "odometry" | "covisibility" | "loop",
+                 "t": [x, y, z], "q": [qx, qy, qz, qw], "information": 6x6 nested list}, ...]
+    }
+
+Quaternions are unit, Hamilton, (x, y, z, w) with ``w >= 0``. :func:`load_json` reads the document back.
+
+Both writers are atomic: the text goes to a temporary file in the target's folder, is flushed and
+fsynced, then ``os.replace``-d over the target, so a reader never sees a partial file and a failed
+export leaves any previous file untouched (and no temporary file behind).
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from slam.geometry import invert
+
+EDGE_KINDS = ("odometry", "covisibility", "loop")
+JSON_FORMAT = "dynslam-graph"
+JSON_VERSION = 1
+INFORMATION_ORDER = ("rx", "ry", "rz", "tx", "ty", "tz")
+# g2o index i holds GTSAM index _G2O_FROM_GTSAM[i]: g2o is (t, r), GTSAM is (r, t).
+_G2O_FROM_GTSAM = np.array([3, 4, 5, 0, 1, 2])
+
+
+@dataclass(frozen=True)
+class GraphEdge:
+    """A relative-pose constraint ``T_ab = T_wa^-1 T_wb`` between keyframes ``a`` and ``b``.
+
+    ``information`` is 6x6, symmetric, rotation block first (see the module docstring).
+    """
+
+    a: int
+    b: int
+    T_ab: np.ndarray
+    information: np.ndarray
+    kind: str = "odometry"
+
+
+# --- helpers ------------------------------------------------------------------------------------------
+def _orthonormal(R: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(R)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def pose_to_tq(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(t (3,), q (4,) as x, y, z, w with w >= 0) of a 4x4 pose."""
+    T = np.asarray(T, dtype=float)
+    q = Rotation.from_matrix(_orthonormal(T[:3, :3])).as_quat()
+    if q[3] < 0:
+        q = -q
+    return T[:3, 3].copy(), q / np.linalg.norm(q)
+
+
+def tq_to_pose(t, q) -> np.ndarray:
+    """4x4 pose from a translation and an (x, y, z, w) quaternion."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(np.asarray(q, dtype=float)).as_matrix()
+    T[:3, 3] = np.asarray(t, dtype=float)
+    return T
+
+
+def information_from_sigmas(sigma_t: float, sigma_r_deg: float, scale: float = 1.0) -> np.ndarray:
+    """Diagonal information (rotation first) of independent sigmas, multiplied by ``scale``."""
+    sr = np.radians(sigma_r_deg)
+    return scale * np.diag(np.r_[np.full(3, 1.0 / sr ** 2), np.full(3, 1.0 / sigma_t ** 2)])
+
+
+def information_to_g2o(information: np.ndarray) -> np.ndarray:
+    """Rotation-first information -> g2o's translation-first order."""
+    info = np.asarray(information, dtype=float)
+    return info[np.ix_(_G2O_FROM_GTSAM, _G2O_FROM_GTSAM)]
+
+
+def information_from_g2o(information_g2o: np.ndarray) -> np.ndarray:
+    """g2o's translation-first information -> rotation-first order (the permutation is its own inverse)."""
+    return information_to_g2o(information_g2o)
+
+
+def _check_graph(kf_ids, poses, edges) -> tuple[list[int], np.ndarray]:
+    ids = [int(k) for k in np.asarray(kf_ids).reshape(-1)]
+    poses = np.asarray(poses, dtype=float)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must be (K,4,4), got {poses.shape}")
+    if len(ids) != len(poses):
+        raise ValueError(f"{len(ids)} keyframe ids for {len(poses)} poses")
+    if len(set(ids)) != len(ids):
+        raise ValueError("keyframe ids must be unique")
+    if not np.all(np.isfinite(poses)):
+        raise ValueError("poses must be finite")
+    known = set(ids)
+    for e in edges:
+        if e.kind not in EDGE_KINDS:
+            raise ValueError(f"edge kind {e.kind!r} is not one of {EDGE_KINDS}")
+        if int(e.a) not in known or int(e.b) not in known:
+            raise ValueError(f"edge ({e.a}, {e.b}) refers to an unknown keyframe")
+        T = np.asarray(e.T_ab, dtype=float)
+        info = np.asarray(e.information, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f"edge ({e.a}, {e.b}): T_ab must be a finite 4x4 matrix")
+        if info.shape != (6, 6) or not np.all(np.isfinite(info)):
+            raise ValueError(f"edge ({e.a}, {e.b}): information must be a finite 6x6 matrix")
+        if not np.allclose(info, info.T, rtol=1e-9, atol=1e-12 * max(1.0, np.abs(info).max())):
+            raise ValueError(f"edge ({e.a}, {e.b}): information must be symmetric")
+    return ids, poses
+
+
+def _atomic_write_text(path, text: str) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def _num(x: float) -> str:
+    return repr(float(x))  # shortest round-tripping decimal
+
+
+# --- writers ------------------------------------------------------------------------------------------
+def format_g2o(kf_ids, poses, edges: Sequence[GraphEdge]) -> str:
+    """The g2o 3-D text of the graph (what :func:`export_g2o` writes)."""
+    ids, poses = _check_graph(kf_ids, poses, edges)
+    lines = []
+    for k, T in zip(ids, poses):
+        t, q = pose_to_tq(T)
+        lines.append(" ".join(["VERTEX_SE3:QUAT", str(k)] + [_num(v) for v in (*t, *q)]))
+    iu = np.triu_indices(6)
+    for e in edges:
+        t, q = pose_to_tq(e.T_ab)
+        info = information_to_g2o(e.information)
+        info = 0.5 * (info + info.T)
+        lines.append(" ".join(["EDGE_SE3:QUAT", str(int(e.a)), str(int(e.b))]
+                              + [_num(v) for v in (*t, *q)] + [_num(v) for v in info[iu]]))
+    return "\n".join(lines) + "\n"
+
+
+def export_g2o(path, kf_ids, poses, edges: Sequence[GraphEdge]) -> None:
+    """Write the graph as g2o 3-D text (``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``), atomically.
+
+    Readable by ``gtsam.readG2o(path, True)``: vertex ``k`` becomes key ``k`` with pose ``poses[i]``,
+    each edge a ``BetweenFactorPose3(a, b, T_ab)`` whose Gaussian noise model has information
+    ``edge.information``. Edge kinds are not representable in g2o; use :func:`export_json` for them.
+    """
+    _atomic_write_text(path, format_g2o(kf_ids, poses, edges))
+
+
+def graph_to_json(kf_ids, timestamps, poses, edges: Sequence[GraphEdge]) -> dict:
+    """The JSON document (a dict) described in the module docstring."""
+    ids, poses = _check_graph(kf_ids, poses, edges)
+    stamps = np.asarray(timestamps, dtype=float).reshape(-1)
+    if len(stamps) != len(ids):
+        raise ValueError(f"{len(stamps)} timestamps for {len(ids)} keyframes")
+    keyframes = []
+    for k, s, T in zip(ids, stamps, poses):
+        t, q = pose_to_tq(T)
+        keyframes.append({"id": k, "timestamp": float(s), "t": t.tolist(), "q": q.tolist()})
+    out_edges = []
+    for e in edges:
+        t, q = pose_to_tq(e.T_ab)
+        info = np.asarray(e.information, dtype=float)
+        out_edges.append({"a": int(e.a), "b": int(e.b), "kind": e.kind, "t": t.tolist(), "q": q.tolist(),
+                          "information": (0.5 * (info + info.T)).tolist()})
+    return {"format": JSON_FORMAT, "version": JSON_VERSION,
+            "pose_convention": "T_wc camera-to-world; edge t/q is T_ab = T_wa^-1 T_wb",
+            "information_order": list(INFORMATION_ORDER), "keyframes": keyframes, "edges": out_edges}
+
+
+def export_json(path, kf_ids, timestamps, poses, edges: Sequence[GraphEdge]) -> None:
+    """Write the graph as a ``dynslam-graph`` v1 JSON document, atomically."""
+    _atomic_write_text(path, json.dumps(graph_to_json(kf_ids, timestamps, poses, edges), indent=1) + "\n")
+
+
+def load_json(path) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[GraphEdge]]:
+    """(kf_ids (K,), timestamps (K,), poses (K,4,4), edges) from a :func:`export_json` file."""
+    doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    if doc.get("format") != JSON_FORMAT or doc.get("version") != JSON_VERSION:
+        raise ValueError(f"{path}: not a {JSON_FORMAT} v{JSON_VERSION} document")
+    kfs = doc["keyframes"]
+    ids = np.array([k["id"] for k in kfs], dtype=np.int64)
+    stamps = np.array([k["timestamp"] for k in kfs], dtype=float)
+    poses = np.array([tq_to_pose(k["t"], k["q"]) for k in kfs]).reshape(-1, 4, 4)
+    edges = [GraphEdge(int(e["a"]), int(e["b"]), tq_to_pose(e["t"], e["q"]), np.array(e["information"], float),
+                       e["kind"]) for e in doc["edges"]]
+    return ids, stamps, poses, edges
+
+
+# --- from a LocalMapper --------------------------------------------------------------------------------
+def mapper_keyframes(mapper) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(kf_ids, timestamps, kf_T_wc copy) of a LocalMapper's map."""
+    kfs = mapper.map.keyframes
+    return (np.array([k.id for k in kfs], dtype=np.int64), np.array([k.timestamp for k in kfs], dtype=float),
+            mapper.map.kf_T_wc.copy())
+
+
+def graph_edges_from_mapper(mapper, min_shared: int = 15, odometry_sigma_t: Optional[float] = None,
+                            odometry_sigma_r_deg: Optional[float] = None,
+                            covisibility_sigma_t: Optional[float] = None,
+                            covisibility_sigma_r_deg: Optional[float] = None) -> list[GraphEdge]:
+    """Pose-graph edges of a LocalMapper's current estimate.
+
+    * odometry: ``(k-1, k)`` for every keyframe k > 0, information
+      :func:`information_from_sigmas` of the odometry sigmas (default: the mapper's
+      ``cfg.odometry_sigma_t`` / ``cfg.odometry_sigma_r_deg``, the values its odometry factors use);
+    * covisibility: every non-consecutive pair ``(i, j)``, ``i < j``, whose ``map.covisibility`` count
+      ``n`` is ``>= min_shared``. Its information is the covisibility sigmas' information (default: the
+      odometry sigmas) multiplied by ``n / min_shared``: each shared landmark is treated as an
+      independent, equally informative constraint, so information grows linearly with the count and a
+      pair right at the threshold weighs as much as an odometry edge. Consecutive pairs are left out:
+      their relative pose is the odometry edge's, so a second edge would only double-count it.
+
+    Relative poses are ``T_ab = kf_T_wc[a]^-1 kf_T_wc[b]`` from the map's (optimised) poses.
+    """
+    cfg = getattr(mapper, "cfg", None)
+    sig_t = odometry_sigma_t if odometry_sigma_t is not None else float(getattr(cfg, "odometry_sigma_t", 0.05))
+    sig_r = (odometry_sigma_r_deg if odometry_sigma_r_deg is not None
+             else float(getattr(cfg, "odometry_sigma_r_deg", 2.0)))
+    cov_t = covisibility_sigma_t if covisibility_sigma_t is not None else sig_t
+    cov_r = covisibility_sigma_r_deg if covisibility_sigma_r_deg is not None else sig_r
+    if min(sig_t, sig_r, cov_t, cov_r) <= 0:
+        raise ValueError("sigmas must be positive")
+    if min_shared < 1:
+        raise ValueError("min_shared must be >= 1")
+    T_wc = np.asarray(mapper.map.kf_T_wc, dtype=float)
+    K = len(T_wc)
+    T_cw = invert(T_wc)
+
+    edges: list[GraphEdge] = []
+    odo_info = information_from_sigmas(sig_t, sig_r)
+    for k in range(1, K):
+        edges.append(GraphEdge(k - 1, k, T_cw[k - 1] @ T_wc[k], odo_info.copy(), "odometry"))
+    covis = np.asarray(mapper.map.covisibility)[:K, :K]
+    ii, jj = np.nonzero(np.triu(covis, k=2) >= min_shared)
+    for i, j in zip(ii.tolist(), jj.tolist()):
+        n = int(covis[i, j])
+        edges.append(GraphEdge(i, j, T_cw[i] @ T_wc[j], information_from_sigmas(cov_t, cov_r, n / min_shared),
+                               "covisibility"))
+    return edges
