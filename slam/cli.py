@@ -89,12 +89,25 @@ def cmd_run(args) -> int:
                            "depth.txt, rgb/ and depth/)")
     config = resolve_run_config(root, args.config, _parse_overrides(args.set))
     dataset = TumDataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
+    if args.blackout:
+        dataset = _blackout(dataset, args.blackout)
     output = Path(args.output) if args.output else _default_output(dataset.name)
     total = min(len(dataset), args.max_frames or len(dataset))
     pipeline = Pipeline(dataset, config, output, args.max_frames, _progress_printer(total, args.quiet))
     summary = pipeline.run()
     print(pipeline.format_summary())
     return 130 if summary.interrupted else 0
+
+
+def _blackout(dataset, spec: str):
+    from slam.config import ConfigError
+    from slam.datasets.faults import Blackout
+
+    try:
+        start, count = (int(x) for x in spec.split(":"))
+        return Blackout(dataset, start, count)
+    except ValueError as exc:
+        raise ConfigError(f"--blackout expects START:COUNT (e.g. 185:30), got '{spec}' ({exc})") from None
 
 
 def cmd_demo(args) -> int:
@@ -145,6 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--output", "-o", help="results folder (default results/<name>_<time>)")
     run.add_argument("--max-frames", type=int, help="stop after this many frames")
     run.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
+    run.add_argument("--blackout", metavar="START:COUNT",
+                     help="fault injection: blank COUNT frames from frame START (tests recovery)")
     config_options(run)
     run.set_defaults(func=cmd_run)
 

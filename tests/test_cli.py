@@ -337,3 +337,25 @@ def test_detector_free_method_needs_no_model(tmp_path, monkeypatch):
 
     monkeypatch.setenv("DYNSLAM_DETECTOR_MODEL", str(tmp_path / "absent.onnx"))
     assert main(["demo", "--frames", "4", "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_cpr"]) == 0
+
+
+def test_blackout_option_marks_blank_frames_lost(tmp_path):
+    from slam.cli import main
+    from slam.datasets import SyntheticSequence, write_tum_layout
+
+    folder = write_tum_layout(SyntheticSequence(n_frames=20), tmp_path / "seq")
+    out = tmp_path / "out"
+    assert main(["run", str(folder), "-o", str(out), "-q", "--blackout", "8:4"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["lost_frames"] == [8, 9, 10, 11] and summary["tracked"] == 16
+    lines = (out / "trajectory.txt").read_text().splitlines()
+    assert sum(line.startswith("# ") and line.endswith(" LOST") for line in lines[1:]) == 4
+
+
+def test_blackout_option_rejects_bad_specs(tmp_path, capsys):
+    from slam.cli import main
+    from slam.datasets import SyntheticSequence, write_tum_layout
+
+    folder = write_tum_layout(SyntheticSequence(n_frames=3), tmp_path / "seq")
+    assert main(["run", str(folder), "-o", str(tmp_path / "o"), "-q", "--blackout", "eight"]) == 2
+    assert "--blackout expects START:COUNT" in capsys.readouterr().err

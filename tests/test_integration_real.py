@@ -16,8 +16,9 @@ import pytest
 
 from slam.cli import resolve_run_config
 from slam.datasets import DatasetWarning, TumDataset
-from slam.evaluation import evaluate_files
+from slam.evaluation import ate, evaluate_files
 from slam.pipeline import Pipeline
+from slam.system import System
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 XYZ = "rgbd_dataset_freiburg1_xyz_first37"
@@ -167,3 +168,28 @@ def test_corrupt_rgb_and_deleted_depth_are_skipped_with_warnings(tmp_path):
     assert not np.isclose(stamps, t_deleted, rtol=0.0, atol=1e-6).any()
     report = evaluate_files(root / "groundtruth.txt", tmp_path / "out" / "trajectory.txt")
     assert report.ate.rmse < 0.02
+
+
+def test_tracking_resumes_in_the_same_map_after_a_blackout():
+    """30 blank frames in the middle of fr1/rpy: those frames are LOST (no invented poses) and
+    tracking resumes within 10 frames afterwards, in the same map (ATE over tracked frames)."""
+    from slam.datasets.faults import Blackout
+
+    seq = DATA / "rgbd_dataset_freiburg1_rpy_first400"
+    if not seq.is_dir():
+        pytest.skip(f"real data not found at {seq}")
+    config = resolve_run_config(seq, [], {})
+    dataset = Blackout(TumDataset(seq, depth_scale=config.camera.depth_scale), start=80, count=30)
+    system = System(config)
+    tracked = []
+    for i, frame in enumerate(dataset):
+        if i >= 150:
+            break
+        tracked.append(system.process(frame.rgb, frame.depth, frame.timestamp, i).T_wc is not None)
+    tracked = np.array(tracked)
+    assert not tracked[80:110].any()
+    assert tracked[:80].all()
+    assert tracked[110:120].any() and tracked[120:].all()
+    stamps, poses, ok = system.trajectory()
+    gt_t, gt_poses = dataset.groundtruth()
+    assert ate(gt_t, gt_poses, stamps[ok], poses[ok]).rmse < 0.035
