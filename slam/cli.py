@@ -93,7 +93,16 @@ def cmd_run(args) -> int:
         dataset = _blackout(dataset, args.blackout)
     output = Path(args.output) if args.output else _default_output(dataset.name)
     total = min(len(dataset), args.max_frames or len(dataset))
-    pipeline = Pipeline(dataset, config, output, args.max_frames, _progress_printer(total, args.quiet))
+    prior_map = None
+    if args.load_map:
+        from backend.map_io import check_camera_compatible, load_map
+
+        prior_map, camera_info, _ = load_map(args.load_map)
+        check_camera_compatible(camera_info, config.camera, args.load_map)
+    if args.save_map and not Path(args.save_map).parent.is_dir():
+        raise FileNotFoundError(f"--save-map: folder {Path(args.save_map).parent} does not exist")
+    pipeline = Pipeline(dataset, config, output, args.max_frames, _progress_printer(total, args.quiet),
+                        save_map=args.save_map, prior_map=prior_map)
     summary = pipeline.run()
     print(pipeline.format_summary())
     return 130 if summary.interrupted else 0
@@ -160,6 +169,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
     run.add_argument("--blackout", metavar="START:COUNT",
                      help="fault injection: blank COUNT frames from frame START (tests recovery)")
+    run.add_argument("--save-map", metavar="PATH", help="save the final map to PATH (.npz, written atomically)")
+    run.add_argument("--load-map", metavar="PATH",
+                     help="localisation only: track against the map saved at PATH, which stays unchanged")
     config_options(run)
     run.set_defaults(func=cmd_run)
 
@@ -194,11 +206,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from slam.evaluation import EvaluationError
     from slam.trajectory import TrajectoryFormatError
     from frontend.detector import DetectorError
+    from backend.map_io import MapCameraError, MapFormatError
 
     try:
         return args.func(args)
     except (ConfigError, DatasetError, EvaluationError, TrajectoryFormatError, DetectorError,
-            FileNotFoundError) as exc:
+            FileNotFoundError, MapFormatError, MapCameraError) as exc:
         print(f"dynslam {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
 

@@ -12,6 +12,8 @@ A results folder holds:
 - ``evaluation.json``          ATE / RPE when ground truth exists;
 - ``summary.json``             counts, per-module milliseconds per frame, ATE;
 - ``dynamic.csv``              with dynamic handling on: features flagged per frame, per method and fused.
+With ``save_map`` the final map is also written (dynslam-map .npz, see backend.map_io), atomically;
+with ``prior_map`` the run localises against that fixed map instead of building one.
 Final files are written atomically, also when the run is interrupted.
 """
 from __future__ import annotations
@@ -59,13 +61,19 @@ class RunSummary:
 
 class Pipeline:
     def __init__(self, dataset: RGBDDataset, config: SlamConfig, output_dir: Path | str,
-                 max_frames: Optional[int] = None, progress: Optional[Callable[[FrameOutput, float], None]] = None):
+                 max_frames: Optional[int] = None, progress: Optional[Callable[[FrameOutput, float], None]] = None,
+                 save_map: Optional[Path | str] = None, prior_map=None):
         self.dataset = dataset
         self.config = config
         self.output_dir = Path(output_dir)
         self.max_frames = max_frames
         self.progress = progress
-        self.system = System(config, sequence_name=getattr(dataset, "name", ""))
+        self.save_map_path = Path(save_map) if save_map is not None else None
+        if prior_map is None:
+            self.system = System(config, sequence_name=getattr(dataset, "name", ""))
+        else:
+            self.system = System(config, sequence_name=getattr(dataset, "name", ""), prior_map=prior_map,
+                                 localization_only=True)
         self.summary = RunSummary(dataset=getattr(dataset, "name", "dataset"), output_dir=str(self.output_dir))
         self.report: Optional[EvaluationReport] = None
 
@@ -81,6 +89,7 @@ class Pipeline:
             self.summary.wall_time_s = time.perf_counter() - start
             self.system.close()
             self._write_result_poses()
+        self._save_map()
         self._run_evaluation()
         self._write_summary()
         return self.summary
@@ -131,6 +140,15 @@ class Pipeline:
             self._write_dynamic_counts(stats.flagged)
         self.summary.skipped_files = [f"{p}: {why}" for p, why in getattr(self.dataset, "skipped", [])]
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
+
+    def _save_map(self) -> None:
+        if self.save_map_path is None:
+            return
+        from backend.map_io import camera_info_from_config, save_map
+
+        save_map(self.save_map_path, self.system.mapper.map, camera_info_from_config(self.config.camera),
+                 self.config.to_yaml())
+        log.info("map saved to %s", self.save_map_path)
 
     def _write_dynamic_counts(self, flagged: dict[str, list[int]]) -> None:
         """dynamic.csv: per frame, how many features each method and the fusion flagged."""

@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from backend.local_mapping import LocalMapper
+from backend.map_store import SlamMap
 from frontend.dynamic import DynamicFilter, build_dynamic_filter
 from frontend.dynamic.base import keypoints_in_mask
 from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_keyframe
@@ -63,10 +64,26 @@ class _MapView:
         return self._mapper.map.map_points(ids)
 
 
+class _WholeMapView(_MapView):
+    """Relocalisation source for localisation-only mode: every good landmark of the map, whatever
+    the seeds (brute-force descriptor matching + PnP-RANSAC against the whole map)."""
+
+    def __init__(self, mapper: LocalMapper):
+        super().__init__(mapper, 0, 0)
+
+    def local_points(self, seed_landmarks: np.ndarray) -> MapPoints:
+        return self._mapper.map.map_points(np.arange(len(self._mapper.map.landmarks)))
+
+
 class System:
     def __init__(self, config: SlamConfig, dynamic_filter: Optional[DynamicFilter] = None, sequence_name: str = "",
-                 detector=None):
+                 detector=None, prior_map: Optional[SlamMap] = None, localization_only: bool = False):
+        """``prior_map`` with ``localization_only=True``: track against a saved map that stays fixed
+        (no graph updates, keyframes, landmark creation or culling, no statistics written to it)."""
+        if localization_only != (prior_map is not None):
+            raise ValueError("prior_map and localization_only go together (extending a loaded map is not supported)")
         self.config = config
+        self.localization_only = localization_only
         self.camera = PinholeCamera.from_config(config.camera)
         self.extractor = OrbExtractor(config.orb, self.camera)
         self.timer = ModuleTimer()
@@ -74,7 +91,10 @@ class System:
                                                                      detector)
         self.tracker = Tracker(config.tracking, self.camera)
         self.mapper = LocalMapper(config.backend, config.keyframes, self.camera, config.tracking.dynamic_threshold)
+        if prior_map is not None:
+            self.mapper.map = prior_map
         self._map_view = _MapView(self.mapper, config.tracking.local_keyframes, config.tracking.covisible_per_keyframe)
+        self._whole_map_view = _WholeMapView(self.mapper) if localization_only else None
         self._frames: list[_FrameRecord] = []
         self._last_keyframe_frame = -1
         self._reference_kf = -1
@@ -91,7 +111,9 @@ class System:
                                                 self.tracker.last_T_cw)
             frame.dynamic_prob = np.clip(np.nan_to_num(probs, nan=0.0), 0.0, 1.0)
             frame = self._refill_static(frame, gray, depth)
-        if self.tracker.state == TrackingState.NOT_INITIALIZED:
+        if self.localization_only:
+            output = self._localize(frame)
+        elif self.tracker.state == TrackingState.NOT_INITIALIZED:
             output = self._initialize(frame)
         else:
             output = self._track(frame)
@@ -190,6 +212,24 @@ class System:
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
         self._frames.append(_FrameRecord(frame.timestamp, self._reference_kf, T_kf_c))
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids))
+
+    def _localize(self, frame: FeatureFrame) -> FrameOutput:
+        """Localisation-only: relocalise against the whole map at the start and after LOST, else
+        track against the local map; the map is only read. The pose is stored relative to the
+        (fixed) reference keyframe, which is the same as storing the absolute pose."""
+        relocalize = self.tracker.state != TrackingState.OK
+        source = self._whole_map_view if relocalize else self._map_view
+        with self.timer.measure("tracking"):
+            result = self.tracker.track(frame, source)
+        if result.state != TrackingState.OK:
+            self._frames.append(_FrameRecord(frame.timestamp, -1, None))
+            return FrameOutput(frame.index, frame.timestamp, result.state, None, False, len(frame), 0)
+        T_wc = invert(result.T_cw)
+        tracked_ids = result.landmark_of_keypoint[result.landmark_of_keypoint >= 0]
+        self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
+        T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
+        self._frames.append(_FrameRecord(frame.timestamp, self._reference_kf, T_kf_c))
+        return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, False, len(frame), len(tracked_ids))
 
     def _decide_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray, n_tracked: int) -> bool:
         ref = self.mapper.map.keyframes[self._reference_kf]
