@@ -145,6 +145,37 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_vocabulary(args) -> int:
+    """Train a bag-of-binary-words vocabulary on the ORB features of a user's images."""
+    import cv2
+    import numpy as np
+
+    from backend.place_recognition import Vocabulary
+    from frontend.orb_extractor import OrbExtractor
+    from slam.camera import PinholeCamera
+    from slam.config import SlamConfig
+    from slam.datasets import DatasetError
+
+    paths = sorted(p for folder in args.images for p in Path(folder).rglob("*")
+                   if p.suffix.lower() in (".png", ".jpg", ".jpeg"))[:: args.step]
+    if not paths:
+        raise DatasetError(f"no PNG/JPEG images found under {', '.join(args.images)}")
+    config = SlamConfig()
+    extractor = OrbExtractor(config.orb, PinholeCamera.from_config(config.camera))
+    descriptors = []
+    for path in paths:
+        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if gray is None:
+            print(f"dynslam vocabulary: skipping unreadable {path}", file=sys.stderr)
+            continue
+        descriptors.append(extractor.extract(gray, np.zeros(gray.shape, np.float32)).descriptors)
+    vocabulary = Vocabulary.train(descriptors, k=args.branches, levels=args.levels, seed=args.seed)
+    vocabulary.save(args.output)
+    print(f"{args.output}: {vocabulary.n_words} words from {sum(map(len, descriptors))} descriptors "
+          f"of {len(descriptors)} images")
+    return 0
+
+
 def cmd_config(args) -> int:
     config = resolve_run_config(None, args.config, _parse_overrides(args.set))
     print(config.to_yaml(), end="")
@@ -189,6 +220,15 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-dt", type=float, default=0.02, help="timestamp association tolerance (s)")
     ev.add_argument("--json", action="store_true", help="print the full report as JSON")
     ev.set_defaults(func=cmd_eval)
+
+    voc = sub.add_parser("vocabulary", help="build a place-recognition vocabulary from images")
+    voc.add_argument("images", nargs="+", help="folders searched recursively for PNG/JPEG images")
+    voc.add_argument("--output", "-o", required=True, help="vocabulary file (.npz)")
+    voc.add_argument("--step", type=int, default=5, help="use every STEP-th image")
+    voc.add_argument("--branches", type=int, default=10)
+    voc.add_argument("--levels", type=int, default=3)
+    voc.add_argument("--seed", type=int, default=0)
+    voc.set_defaults(func=cmd_vocabulary)
 
     cfg = sub.add_parser("config", help="print the default (or resolved) configuration as YAML")
     config_options(cfg)

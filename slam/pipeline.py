@@ -11,6 +11,7 @@ A results folder holds:
 - ``groundtruth.txt``          for generated sequences only, the exact camera path;
 - ``evaluation.json``          ATE / RPE when ground truth exists;
 - ``summary.json``             counts, per-module milliseconds per frame, ATE;
+- ``graph.g2o``, ``graph.json``   the optimised keyframe graph (g2o text: ``gtsam.readG2o``);
 - ``dynamic.csv``              with dynamic handling on: features flagged per frame, per method and fused.
 With ``save_map`` the final map is also written (dynslam-map .npz, see backend.map_io), atomically;
 with ``prior_map`` the run localises against that fixed map instead of building one.
@@ -90,6 +91,7 @@ class Pipeline:
             self.system.close()
             self._write_result_poses()
         self._save_map()
+        self._write_graph()
         self._run_evaluation()
         self._write_summary()
         return self.summary
@@ -140,6 +142,18 @@ class Pipeline:
             self._write_dynamic_counts(stats.flagged)
         self.summary.skipped_files = [f"{p}: {why}" for p, why in getattr(self.dataset, "skipped", [])]
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
+
+    def _write_graph(self) -> None:
+        """graph.g2o and graph.json: the optimised keyframe graph (odometry + covisibility edges)."""
+        from backend.graph_export import export_g2o, export_json, graph_edges_from_mapper, mapper_keyframes
+
+        mapper = self.system.mapper
+        if mapper.map.num_keyframes == 0 or self.system.localization_only:
+            return
+        ids, stamps, poses = mapper_keyframes(mapper)
+        edges = graph_edges_from_mapper(mapper, self.config.backend.covisibility_min_shared)
+        export_g2o(self.output_dir / "graph.g2o", ids, poses, edges)
+        export_json(self.output_dir / "graph.json", ids, stamps, poses, edges)
 
     def _save_map(self) -> None:
         if self.save_map_path is None:

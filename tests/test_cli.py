@@ -359,3 +359,41 @@ def test_blackout_option_rejects_bad_specs(tmp_path, capsys):
     folder = write_tum_layout(SyntheticSequence(n_frames=3), tmp_path / "seq")
     assert main(["run", str(folder), "-o", str(tmp_path / "o"), "-q", "--blackout", "eight"]) == 2
     assert "--blackout expects START:COUNT" in capsys.readouterr().err
+
+
+def test_vocabulary_command_builds_a_loadable_vocabulary(tmp_path):
+    import cv2
+
+    from backend.place_recognition import Vocabulary
+    from slam.cli import main
+    from slam.datasets import SyntheticSequence
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for frame in SyntheticSequence(n_frames=6):
+        cv2.imwrite(str(images / f"{frame.index:03d}.png"), frame.rgb)
+    out = tmp_path / "voc.npz"
+    assert main(["vocabulary", str(images), "-o", str(out), "--step", "1", "--levels", "2"]) == 0
+    vocabulary = Vocabulary.load(out)
+    assert 10 < vocabulary.n_words <= 100
+
+
+def test_vocabulary_command_without_images_is_a_clear_error(tmp_path, capsys):
+    from slam.cli import main
+
+    assert main(["vocabulary", str(tmp_path), "-o", str(tmp_path / "v.npz")]) == 2
+    assert "no PNG/JPEG images" in capsys.readouterr().err
+
+
+def test_run_writes_the_keyframe_graph(tmp_path):
+    import gtsam
+
+    from slam.cli import main
+
+    out = tmp_path / "out"
+    assert main(["demo", "--frames", "15", "-o", str(out), "-q"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    graph, values = gtsam.readG2o(str(out / "graph.g2o"), True)
+    assert values.size() == summary["keyframes"] and graph.size() >= summary["keyframes"] - 1
+    data = json.loads((out / "graph.json").read_text())
+    assert len(data["keyframes"]) == summary["keyframes"]
