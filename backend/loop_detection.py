@@ -1,0 +1,244 @@
+"""Loop detection for keyframes: DBoW2 place recognition, ORB-SLAM's consistent groups, PnP verification.
+
+``LoopDetector.process_keyframe(slam_map, kf_id)`` runs ORB-SLAM's ``DetectLoop`` + the geometric half
+of ``ComputeSim3`` (RGB-D: scale is known, so an SE(3) PnP against the map replaces Sim3):
+
+1. **Place recognition on static features only.** The keyframe's features with
+   ``dynamic_prob < dynamic_threshold`` form its bag of words. A walking person or a moved chair
+   describes *when* an image was taken, not *where*; letting them vote would both create false
+   loops (the same person seen in two places) and hide true ones. A keyframe with no static
+   feature gets an empty vector and can neither find nor be found.
+2. **Candidates.** The keyframe index is queried (before the keyframe is added) excluding the keyframe,
+   its covisible keyframes (``>= min_covisible_shared`` shared landmarks: they are already connected
+   in the graph, a "loop" to them closes nothing) and the ``exclude_recent`` newest keyframes. As in
+   DBoW2/ORB-SLAM the acceptance threshold adapts to the scene: ``min_score`` is the *lowest* score
+   between the keyframe and its covisible neighbours, i.e. how similar an image of *this* place
+   looks from nearby. Candidates must beat it and reach ``min_score_ratio`` x the best candidate.
+3. **Temporal consistency.** Each candidate and its covisible neighbourhood form a *group*. A group is
+   consistent with a group of the previous keyframe if they share a keyframe; the consistency count
+   grows by one per consecutive keyframe. Only candidates whose count reaches ``consistency`` go on
+   (one keyframe with a lucky BoW score is not enough; a real revisit keeps matching).
+4. **Geometric verification (static features only).** The keyframe's static descriptors are matched
+   (``cv2.BFMatcher`` Hamming, Lowe ratio 0.75, one keypoint per landmark) to the good landmarks
+   observed by the candidate and its covisible neighbours; ``cv2.solvePnPRansac`` (seeded with
+   ``cv2.setRNGSeed``) on world landmark positions vs. the keyframe's undistorted pixels
+   (``camera.K``, no distortion) gives a pose that is refined with ``SOLVEPNP_ITERATIVE`` on the
+   inliers. Inliers whose predicted depth disagrees with the measured depth by more than
+   ``depth_tolerance`` (relative) are dropped: an RGB-D camera measures that depth, and a repeated
+   texture at another distance is a classic false match. At least ``min_inliers`` must remain.
+5. The first verified candidate (best BoW score first) is returned as a ``LoopCandidate``: the query's
+   pose implied by the map around the match (``T_wc_corrected``), the relative pose
+   ``T_match_query = T_w,match^-1 T_wc_corrected`` for ``Graph.add_relative_pose(match_kf, query_kf,
+   T_match_query, ...)`` (a BetweenFactorPose3), and the inlier (keypoint, landmark) pairs.
+
+Everything per feature/landmark is numpy or OpenCV; Python loops run only over the handful of
+candidates and consistent groups. This module imports nothing from ``frontend``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from backend.map_store import SlamMap
+from backend.place_recognition import KeyframeIndex, Vocabulary, score
+
+__all__ = ["LoopCandidate", "LoopDetector"]
+
+
+@dataclass
+class LoopCandidate:
+    """A verified loop between ``query_kf`` (the new keyframe) and ``match_kf`` (an old one).
+
+    ``T_wc_corrected``: the query's camera-to-world pose implied by the landmarks around the match.
+    ``T_match_query``: pose of the query seen from the match (``T_w,match^-1 @ T_wc_corrected``), the
+    measurement of a between factor ``add_relative_pose(match_kf, query_kf, T_match_query, ...)``.
+    ``matches``: (M, 2) int64 inlier pairs (query keypoint index, landmark id).
+    """
+
+    query_kf: int
+    match_kf: int
+    T_wc_corrected: np.ndarray
+    T_match_query: np.ndarray
+    n_inliers: int
+    score: float
+    matches: np.ndarray = field(repr=False)
+
+
+def _pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))[0]
+    T[:3, 3] = np.asarray(tvec, np.float64).ravel()
+    return T
+
+
+def _invert(T: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+class LoopDetector:
+    """Keeps its own ``KeyframeIndex`` and consistent groups; feed every new keyframe in order."""
+
+    def __init__(self, vocabulary: Vocabulary, camera, min_covisible_shared: int = 15, consistency: int = 3,
+                 min_inliers: int = 30, dynamic_threshold: float = 0.5, min_score_ratio: float = 0.75,
+                 exclude_recent: int = 5, max_candidates: int = 10, ratio: float = 0.75,
+                 max_descriptor_distance: int = 64, reprojection_error: float = 3.0,
+                 ransac_iterations: int = 300, depth_tolerance: Optional[float] = 0.1, seed: int = 0) -> None:
+        """``depth_tolerance=None`` disables the depth-consistency check; ``seed`` seeds OpenCV's RNG
+        before every RANSAC so results do not depend on what else drew from it."""
+        if consistency < 1 or min_inliers < 4:
+            raise ValueError("need consistency >= 1 and min_inliers >= 4")
+        self.vocabulary = vocabulary
+        self.camera = camera
+        self.min_covisible_shared = int(min_covisible_shared)
+        self.consistency = int(consistency)
+        self.min_inliers = int(min_inliers)
+        self.dynamic_threshold = float(dynamic_threshold)
+        self.min_score_ratio = float(min_score_ratio)
+        self.exclude_recent = int(exclude_recent)
+        self.max_candidates = int(max_candidates)
+        self.ratio = float(ratio)
+        self.max_descriptor_distance = int(max_descriptor_distance)
+        self.reprojection_error = float(reprojection_error)
+        self.ransac_iterations = int(ransac_iterations)
+        self.depth_tolerance = depth_tolerance
+        self.seed = int(seed)
+        self.index = KeyframeIndex(vocabulary)
+        self._groups: list[tuple[np.ndarray, int]] = []  # (sorted keyframe ids, consistency count)
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
+        self.last_candidates: list[tuple[int, float]] = []   # diagnostics of the last call
+        self.last_consistent: list[int] = []
+
+    # ------------------------------------------------------------------ public
+    def process_keyframe(self, slam_map: SlamMap, kf_id: int) -> Optional[LoopCandidate]:
+        """Detect a loop for keyframe ``kf_id`` (then index it). ``None`` when there is none."""
+        kf_id = int(kf_id)
+        feats = slam_map.keyframes[kf_id].features
+        static = self._static_mask(feats)
+        desc = feats.descriptors[static]
+        covisible = slam_map.covisible_keyframes(kf_id, self.min_covisible_shared, limit=slam_map.num_keyframes)
+        try:
+            candidates = self._candidates(slam_map, kf_id, desc, covisible)
+            self.last_candidates = candidates
+            consistent = self._consistent(slam_map, candidates)
+            self.last_consistent = [c for c, _ in consistent]
+            for cand, s in consistent:
+                loop = self._verify(slam_map, kf_id, static, cand, s)
+                if loop is not None:
+                    return loop
+            return None
+        finally:
+            self.index.add(kf_id, desc)
+
+    def remove_keyframe(self, kf_id: int) -> None:
+        """Forget a culled keyframe (it can no longer be a candidate)."""
+        if kf_id in self.index:
+            self.index.remove(kf_id)
+
+    def reset_consistency(self) -> None:
+        self._groups = []
+
+    # ------------------------------------------------------------------ steps
+    def _static_mask(self, feats) -> np.ndarray:
+        prob = np.nan_to_num(np.asarray(feats.dynamic_prob, np.float64), nan=1.0)
+        return prob < self.dynamic_threshold
+
+    def _candidates(self, slam_map: SlamMap, kf_id: int, desc: np.ndarray,
+                    covisible: np.ndarray) -> list[tuple[int, float]]:
+        """BoW candidates above the adaptive DBoW2 minimum score, best first."""
+        if len(desc) == 0 or len(self.index) == 0:
+            return []
+        q = self.vocabulary.bow(desc)
+        if len(q) == 0:
+            return []
+        indexed = [int(c) for c in covisible if int(c) in self.index]
+        min_score = min((score(q, self.index.bow(c)) for c in indexed), default=0.0)
+        exclude = {kf_id, *map(int, covisible), *range(max(0, kf_id - self.exclude_recent), kf_id)}
+        hits = self.index.query(desc, exclude=exclude, top_k=len(self.index))
+        if not hits:
+            return []
+        best = hits[0][1]
+        keep = [(k, s) for k, s in hits if s > min_score and s >= self.min_score_ratio * best]
+        return keep[: self.max_candidates]
+
+    def _group(self, slam_map: SlamMap, kf: int) -> np.ndarray:
+        cov = slam_map.covisible_keyframes(kf, self.min_covisible_shared, limit=slam_map.num_keyframes)
+        return np.union1d(cov, [kf]).astype(np.int64)
+
+    def _consistent(self, slam_map: SlamMap, candidates: list[tuple[int, float]]) -> list[tuple[int, float]]:
+        """ORB-SLAM's consistent groups: update the groups, return candidates whose count reached
+        ``consistency`` (score order). Without candidates the groups are cleared: consistency means
+        *consecutive* keyframes."""
+        new_groups: list[tuple[np.ndarray, int]] = []
+        accepted: list[tuple[int, float]] = []
+        for cand, s in candidates:
+            group = self._group(slam_map, cand)
+            counts = [c + 1 for g, c in self._groups if np.intersect1d(g, group, assume_unique=True).size]
+            count = max(counts, default=1)
+            new_groups.append((group, count))
+            if count >= self.consistency:
+                accepted.append((cand, s))
+        self._groups = new_groups
+        return accepted
+
+    def _verify(self, slam_map: SlamMap, kf_id: int, static: np.ndarray, cand: int,
+                bow_score: float) -> Optional[LoopCandidate]:
+        """Match static query features to the candidate neighbourhood's landmarks, PnP-RANSAC, refine."""
+        feats = slam_map.keyframes[kf_id].features
+        kp_idx = np.flatnonzero(static)
+        if len(kp_idx) < self.min_inliers:
+            return None
+        points = slam_map.map_points(slam_map.landmarks_of_keyframes(self._group(slam_map, cand)))
+        if len(points) < self.min_inliers:
+            return None
+        q_desc = np.ascontiguousarray(feats.descriptors[kp_idx])
+        knn = self._matcher.knnMatch(q_desc, np.ascontiguousarray(points.descriptors), k=2)
+        rows = np.array([(m[0].queryIdx, m[0].trainIdx, m[0].distance,
+                          m[1].distance if len(m) > 1 else np.inf) for m in knn if len(m)], np.float64)
+        if len(rows) == 0:
+            return None
+        good = (rows[:, 2] < self.ratio * rows[:, 3]) & (rows[:, 2] <= self.max_descriptor_distance)
+        rows = rows[good]
+        # One keypoint per landmark: keep the closest descriptor (sort by distance, first of each).
+        rows = rows[np.argsort(rows[:, 2], kind="stable")]
+        _, first = np.unique(rows[:, 1].astype(np.int64), return_index=True)
+        rows = rows[np.sort(first)]
+        if len(rows) < self.min_inliers:
+            return None
+        q_local, lm_local = rows[:, 0].astype(np.int64), rows[:, 1].astype(np.int64)
+        obj = np.ascontiguousarray(points.xyz[lm_local], np.float64)
+        img = np.ascontiguousarray(feats.uv[kp_idx[q_local]], np.float64)
+        K = self.camera.K
+        cv2.setRNGSeed(self.seed)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=self.ransac_iterations,
+                                                 reprojectionError=self.reprojection_error, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < self.min_inliers:
+            return None
+        inl = inl.ravel()
+        ok, rvec, tvec = cv2.solvePnP(obj[inl], img[inl], K, None, rvec, tvec, useExtrinsicGuess=True,
+                                      flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            return None
+        T_cw = _pose_from_rvec(rvec, tvec)
+        pc = obj @ T_cw[:3, :3].T + T_cw[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            proj = pc[:, :2] / pc[:, 2:3] * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+        err = np.linalg.norm(proj - img, axis=1)
+        inlier = (pc[:, 2] > 0) & (err < self.reprojection_error)
+        if self.depth_tolerance is not None:
+            measured = np.asarray(feats.depths, np.float64)[kp_idx[q_local]]
+            has = measured > 0
+            inlier &= ~has | (np.abs(pc[:, 2] - measured) <= self.depth_tolerance * np.where(has, measured, 1.0))
+        n = int(inlier.sum())
+        if n < self.min_inliers:
+            return None
+        T_wc = _invert(T_cw)
+        T_match_query = _invert(slam_map.kf_T_wc[cand]) @ T_wc
+        pairs = np.stack([kp_idx[q_local[inlier]], points.ids[lm_local[inlier]]], axis=1).astype(np.int64)
+        return LoopCandidate(kf_id, int(cand), T_wc, T_match_query, n, float(bow_score), pairs)
