@@ -49,8 +49,6 @@ export leaves any previous file untouched (and no temporary file behind).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
@@ -58,6 +56,7 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from slam.atomic_io import write_text_atomic
 from slam.geometry import invert
 
 EDGE_KINDS = ("odometry", "covisibility", "loop")
@@ -150,24 +149,6 @@ def _check_graph(kf_ids, poses, edges) -> tuple[list[int], np.ndarray]:
     return ids, poses
 
 
-def _atomic_write_text(path, text: str) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-
-
 def _num(x: float) -> str:
     return repr(float(x))  # shortest round-tripping decimal
 
@@ -197,7 +178,7 @@ def export_g2o(path, kf_ids, poses, edges: Sequence[GraphEdge]) -> None:
     each edge a ``BetweenFactorPose3(a, b, T_ab)`` whose Gaussian noise model has information
     ``edge.information``. Edge kinds are not representable in g2o; use :func:`export_json` for them.
     """
-    _atomic_write_text(path, format_g2o(kf_ids, poses, edges))
+    write_text_atomic(path, format_g2o(kf_ids, poses, edges))
 
 
 def graph_to_json(kf_ids, timestamps, poses, edges: Sequence[GraphEdge]) -> dict:
@@ -223,7 +204,7 @@ def graph_to_json(kf_ids, timestamps, poses, edges: Sequence[GraphEdge]) -> dict
 
 def export_json(path, kf_ids, timestamps, poses, edges: Sequence[GraphEdge]) -> None:
     """Write the graph as a ``dynslam-graph`` v1 JSON document, atomically."""
-    _atomic_write_text(path, json.dumps(graph_to_json(kf_ids, timestamps, poses, edges), indent=1) + "\n")
+    write_text_atomic(path, json.dumps(graph_to_json(kf_ids, timestamps, poses, edges), indent=1) + "\n")
 
 
 def load_json(path) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[GraphEdge]]:

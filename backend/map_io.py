@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any, Mapping, Union
@@ -56,6 +55,7 @@ from typing import Any, Mapping, Union
 import numpy as np
 
 from backend.map_store import KeyframeRecord, SlamMap, landmark_table, observation_table
+from slam.atomic_io import write_npz_atomic
 from slam.frame import FeatureFrame
 
 FORMAT_NAME = "dynslam-map"
@@ -133,36 +133,7 @@ def _map_arrays(slam_map: SlamMap, camera_info: Mapping, config_yaml: str) -> di
 
 def save_map(path: PathLike, slam_map: SlamMap, camera_info: Mapping, config_yaml: str) -> None:
     """Write ``slam_map`` to ``path`` in the dynslam-map format, atomically."""
-    target = Path(path)
-    arrays = _map_arrays(slam_map, camera_info, config_yaml)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
-        with os.fdopen(fd, "wb") as handle:
-            np.savez_compressed(handle, **arrays)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, target)
-    except BaseException:
-        if os.path.exists(tmp_name):
-            os.unlink(tmp_name)
-        raise
-    _fsync_directory(target.parent)
-
-
-def _fsync_directory(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+    write_npz_atomic(path, **_map_arrays(slam_map, camera_info, config_yaml))
 
 
 # ----------------------------------------------------------------------------------------- loading

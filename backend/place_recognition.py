@@ -40,23 +40,21 @@ missing, truncated, corrupt, inconsistent or wrong-version file.
 from __future__ import annotations
 
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Sequence, Union
 
 import numpy as np
-import scipy.sparse as sp
+
+from backend.binary_clustering import DESCRIPTOR_BYTES, cluster_level, hamming, row_distances
+from slam.atomic_io import write_npz_atomic
 
 __all__ = ["VOCABULARY_VERSION", "VocabularyError", "Vocabulary", "BowVector", "score", "hamming",
            "KeyframeIndex"]
 
 VOCABULARY_VERSION = 1
 _FORMAT = "dynslam-bow-vocabulary"
-DESCRIPTOR_BYTES = 32
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
-_CHUNK = 1 << 15  # rows per chunk of the (rows, k, 32) XOR tensors, bounds memory at ~10 MB per k=10
 
 
 class VocabularyError(ValueError):
@@ -73,86 +71,6 @@ def _check_descriptors(descriptors) -> np.ndarray:
         raise ValueError(f"descriptors must be uint8 of shape (N, {DESCRIPTOR_BYTES}), "
                          f"got {d.dtype} {d.shape}")
     return np.ascontiguousarray(d)
-
-
-def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distances between broadcastable uint8 descriptor arrays (last axis = bytes) as int32."""
-    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=-1, dtype=np.int32)
-
-
-def _row_distances(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """(n, 32) descriptors against their own (n, c, 32) candidate centres -> (n, c) distances, chunked."""
-    out = np.empty(centres.shape[:2], np.int32)
-    for s in range(0, len(x), _CHUNK):
-        out[s:s + _CHUNK] = hamming(x[s:s + _CHUNK, None, :], centres[s:s + _CHUNK])
-    return out
-
-
-def _pick_in_groups(weights, starts, sizes, need, rng) -> np.ndarray:
-    """For each group with ``need``: index (into the group-sorted arrays) drawn with prob ~ weights,
-    uniformly when a group's weights are all zero. Returns -1 where not needed."""
-    u = rng.random(len(sizes))
-    cs = np.cumsum(weights)
-    before = np.where(starts > 0, cs[np.maximum(starts - 1, 0)], 0.0)
-    ends = starts + sizes
-    total = cs[np.maximum(ends - 1, 0)] - before
-    pick = np.searchsorted(cs, before + u * total, side="right")
-    uniform = starts + np.minimum((u * sizes).astype(np.int64), np.maximum(sizes - 1, 0))
-    pick = np.where(total > 0, pick, uniform)
-    pick = np.clip(pick, starts, np.maximum(ends - 1, starts))
-    return np.where(need, pick, -1)
-
-
-def _cluster_level(x: np.ndarray, group: np.ndarray, n_groups: int, k: int, iterations: int,
-                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """k-majority clustering of every group at once. ``x`` (n, 32) sorted by ``group`` (n,).
-
-    Returns (labels (n,) in [0, k), centres (G, k, 32)); group g uses min(k, size_g) centre slots.
-    """
-    n = len(x)
-    sizes = np.bincount(group, minlength=n_groups)
-    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    kg = np.minimum(sizes, k)
-    slot_ok = np.arange(k)[None, :] < kg[:, None]  # (G, k)
-
-    # k-means++ seeding (weights = squared distance to the nearest chosen centre), all groups at once.
-    centres = np.zeros((n_groups, k, DESCRIPTOR_BYTES), np.uint8)
-    mind = np.full(n, np.iinfo(np.int32).max, np.int64)
-    for j in range(k):
-        need = kg > j
-        if not need.any():
-            break
-        w = np.where(mind == np.iinfo(np.int32).max, 1.0, mind.astype(np.float64) ** 2)
-        pick = _pick_in_groups(w, starts, sizes, need, rng)
-        centres[need, j] = x[pick[need]]
-        row_need = need[group]
-        d = hamming(x[row_need], centres[group[row_need], j])
-        mind[row_need] = np.minimum(mind[row_need], d)
-
-    bits = np.unpackbits(x, axis=1).astype(np.int32)  # (n, 256)
-    big = np.int32(1 << 20)
-
-    def assign(c: np.ndarray) -> np.ndarray:
-        d = _row_distances(x, c[group])
-        d[~slot_ok[group]] = big
-        return np.argmin(d, axis=1)
-
-    labels = assign(centres)
-    cols = np.arange(n)
-    for _ in range(iterations):
-        cid = group * k + labels
-        member = sp.csr_matrix((np.ones(n, np.int32), (cid, cols)), shape=(n_groups * k, n))
-        counts = np.asarray(member @ bits)  # (G*k, 256) number of set bits per cluster
-        csize = np.bincount(cid, minlength=n_groups * k)
-        new = np.packbits((2 * counts > csize[:, None]).astype(np.uint8), axis=1).reshape(centres.shape)
-        keep = (csize == 0).reshape(n_groups, k)  # empty clusters keep their old centre
-        new[keep] = centres[keep]
-        centres = new
-        relabel = assign(centres)
-        if np.array_equal(relabel, labels):
-            break
-        labels = relabel
-    return labels, centres
 
 
 @dataclass(frozen=True)
@@ -249,7 +167,7 @@ class Vocabulary:
             order = np.argsort(node_of, kind="stable")
             sel, node_of = sel[order], node_of[order]
             groups, group = np.unique(node_of, return_inverse=True)
-            labels, centres = _cluster_level(x[sel], group, len(groups), k, iterations, rng)
+            labels, centres = cluster_level(x[sel], group, len(groups), k, iterations, rng)
             cid = group * k + labels
             csize = np.bincount(cid, minlength=len(groups) * k)
             made = np.flatnonzero(csize)  # (group, slot) pairs that got descriptors, group-major
@@ -287,7 +205,7 @@ class Vocabulary:
                 break
             c = ch[rows]
             valid = c >= 0
-            d = _row_distances(x[rows], self.node_descriptors[np.maximum(c, 0)])
+            d = row_distances(x[rows], self.node_descriptors[np.maximum(c, 0)])
             d[~valid] = big
             cur[rows] = c[np.arange(len(rows)), np.argmin(d, axis=1)]
         return self._node_word[cur]
@@ -309,27 +227,11 @@ class Vocabulary:
     # ------------------------------------------------------------------ persistence
     def save(self, path: Union[str, os.PathLike]) -> Path:
         """Write the documented ``.npz`` format atomically (temp file + fsync + os.replace)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(
-                    f, format=np.array(_FORMAT), version=np.array(VOCABULARY_VERSION, np.int64),
-                    k=np.array(self.k, np.int64), levels=np.array(self.levels, np.int64),
-                    n_training_docs=np.array(self.n_training_docs, np.int64),
-                    node_descriptors=self.node_descriptors, node_parents=self.node_parents,
-                    idf=self.idf)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except FileNotFoundError:
-                pass
-            raise
-        return path
+        return write_npz_atomic(
+            path, format=np.array(_FORMAT), version=np.array(VOCABULARY_VERSION, np.int64),
+            k=np.array(self.k, np.int64), levels=np.array(self.levels, np.int64),
+            n_training_docs=np.array(self.n_training_docs, np.int64),
+            node_descriptors=self.node_descriptors, node_parents=self.node_parents, idf=self.idf)
 
     @classmethod
     def load(cls, path: Union[str, os.PathLike]) -> "Vocabulary":

@@ -23,7 +23,6 @@ from __future__ import annotations
 import hashlib
 import os
 import re
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Iterable, Optional
@@ -34,6 +33,7 @@ import numpy as np
 from frontend.detector_boxes import boxes_from_input, letterbox_params, nms_per_class
 from frontend.detector_boxes import box_iou, boxes_to_input, nms_numpy  # noqa: F401  (re-exported)
 from frontend.dynamic.base import Detection, Detector
+from slam.atomic_io import write_npz_atomic
 from slam.dynamic_config import ClassGroups, DetectorConfig
 
 ENV_MODEL = "DYNSLAM_DETECTOR_MODEL"
@@ -342,21 +342,8 @@ class CachedDetector:
         keys = sorted(self._entries)
         counts = np.array([len(self._entries[k]) for k in keys], dtype=np.int64)
         rows = (np.concatenate([self._entries[k] for k in keys], axis=0) if keys else np.zeros((0, 6)))
-        self.cache_file.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=self.cache_file.name + ".", suffix=".tmp", dir=self.cache_file.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, keys=np.array(keys, dtype=np.str_), counts=counts,
-                                    rows=rows.astype(np.float64))
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, self.cache_file)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
+        write_npz_atomic(self.cache_file, keys=np.array(keys, dtype=np.str_), counts=counts,
+                         rows=rows.astype(np.float64))
         self._dirty = False
 
     def close(self) -> None:

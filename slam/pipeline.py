@@ -32,7 +32,8 @@ from slam.config import SlamConfig
 from slam.datasets.base import RGBDDataset
 from slam.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
 from slam.system import FrameOutput, System
-from slam.trajectory import TumStreamWriter, format_tum_line, tum_rows_from_poses, write_text_atomic, write_tum
+from slam.atomic_io import write_text_atomic
+from slam.trajectory import TumStreamWriter, format_tum_line, tum_rows_from_poses, write_tum
 
 log = logging.getLogger("dynslam")
 

@@ -13,13 +13,14 @@ atomic or line-flushed so that a crash never leaves a half-written pose.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Union
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from slam.atomic_io import write_text_atomic  # noqa: F401  (re-exported)
 
 PathLike = Union[str, "os.PathLike[str]"]  # str or pathlib.Path
 
@@ -160,41 +161,6 @@ def write_tum(path: PathLike, timestamps: np.ndarray, poses: np.ndarray) -> None
     rows = tum_rows_from_poses(P[order])
     text = TUM_HEADER + "\n" + "".join(format_tum_line(ts, r) for ts, r in zip(t[order], rows))
     write_text_atomic(path, text)
-
-
-def write_text_atomic(path: PathLike, text: str) -> None:
-    """Write ``text`` via a flushed, fsynced temporary file in the same folder, then rename it
-    over ``path``: readers see the old file or the complete new one, never half of it."""
-    target = Path(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp creates 0600; results are meant to be shared
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, target)
-    except BaseException:
-        if os.path.exists(tmp_name):
-            os.unlink(tmp_name)
-        raise
-    _fsync_directory(target.parent)
-
-
-def _fsync_directory(directory: Path) -> None:
-    """Persist a rename on POSIX by fsyncing the directory (best effort)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 class TumStreamWriter:

@@ -136,7 +136,7 @@ def test_failed_write_keeps_previous_file(graph, tmp_path, monkeypatch):
     def failing_replace(src, dst):
         raise OSError("disk gone")
 
-    monkeypatch.setattr(ge.os, "replace", failing_replace)
+    monkeypatch.setattr(os, "replace", failing_replace)
     with pytest.raises(OSError):
         export_g2o(path, ids[:2], poses[:2], edges[:1])
     assert path.read_bytes() == before
