@@ -42,6 +42,7 @@ log = logging.getLogger("dynslam")
 class RunSummary:
     dataset: str
     output_dir: str
+    dataset_path: Optional[str] = None     # folder or file the frames came from (None: generated)
     frames: int = 0
     tracked: int = 0
     lost: int = 0
@@ -76,7 +77,9 @@ class Pipeline:
         else:
             self.system = System(config, sequence_name=getattr(dataset, "name", ""), prior_map=prior_map,
                                  localization_only=True)
-        self.summary = RunSummary(dataset=getattr(dataset, "name", "dataset"), output_dir=str(self.output_dir))
+        root = getattr(dataset, "root", None)
+        self.summary = RunSummary(dataset=getattr(dataset, "name", "dataset"), output_dir=str(self.output_dir),
+                                  dataset_path=None if root is None else str(Path(root).resolve()))
         self.report: Optional[EvaluationReport] = None
 
     def run(self) -> RunSummary:

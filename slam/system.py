@@ -98,6 +98,7 @@ class System:
         self._frames: list[_FrameRecord] = []
         self._last_keyframe_frame = -1
         self._reference_kf = -1
+        self.last_frame: Optional[FeatureFrame] = None   # features (with dynamic_prob) of the last frame
         cv2.setRNGSeed(config.seed)  # PnP-RANSAC draws from OpenCV's global generator
 
     # --- public -----------------------------------------------------------------------------------
@@ -111,6 +112,7 @@ class System:
                                                 self.tracker.last_T_cw)
             frame.dynamic_prob = np.clip(np.nan_to_num(probs, nan=0.0), 0.0, 1.0)
             frame = self._refill_static(frame, gray, depth)
+        self.last_frame = frame
         if self.localization_only:
             output = self._localize(frame)
         elif self.tracker.state == TrackingState.NOT_INITIALIZED:
@@ -142,6 +144,11 @@ class System:
             extra = extra.subset(distance > 2.0)  # not a re-detection of a feature we have
         extra.dynamic_prob = keypoints_in_mask(mask, extra.uv_raw).astype(float)
         return frame.append(extra)
+
+    @property
+    def last_dynamic_mask(self) -> Optional[np.ndarray]:
+        """HxW float dynamic probability per pixel of the last frame (None with dynamic handling off)."""
+        return getattr(self.dynamic_filter, "last_mask", None)
 
     def close(self) -> None:
         """Release what the components hold open (e.g. save the detection cache)."""
