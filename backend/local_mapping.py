@@ -43,7 +43,9 @@ class LocalMapper:
         calibration = StereoCalibration(camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline)
         self.graph = FactorGraphBackend(BackendParams.from_config(cfg), calibration)
 
-    def insert_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, landmark_of_keypoint: np.ndarray) -> KeyframeInsertion:
+    def insert_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, landmark_of_keypoint: np.ndarray,
+                        colors: np.ndarray | None = None) -> KeyframeInsertion:
+        """``colors``: (N,3) uint8 BGR of each keypoint, stored with the landmarks it creates."""
         lm_of_kp = landmark_of_keypoint.copy()
         kf_id = self.map.add_keyframe(frame, T_wc, lm_of_kp)
         self.graph.add_keyframe(kf_id, T_wc)
@@ -52,7 +54,7 @@ class LocalMapper:
             self.graph.add_relative_pose(kf_id - 1, kf_id, invert(T_prev) @ T_wc, self.cfg.odometry_sigma_t,
                                          self.cfg.odometry_sigma_r_deg, kernel="huber")
         promoted = self._add_observations(kf_id, frame, lm_of_kp)
-        created = self._create_landmarks(kf_id, frame, T_wc, lm_of_kp)
+        created = self._create_landmarks(kf_id, frame, T_wc, lm_of_kp, colors)
         self.map.keyframes[kf_id].landmark_of_keypoint = lm_of_kp
         self.map.update_covisibility(kf_id)
         self.graph.update()
@@ -111,7 +113,8 @@ class LocalMapper:
         obs.in_graph[rows] = True
 
     # --- creation ----------------------------------------------------------------------------------
-    def _create_landmarks(self, kf_id: int, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray) -> int:
+    def _create_landmarks(self, kf_id: int, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray,
+                          colors: np.ndarray | None = None) -> int:
         """New anchored landmarks from unmatched static features with depth, closest first."""
         admissible = frame.dynamic_prob < min(self.dynamic_threshold, self.cfg.landmark_max_dynamic_prob)
         candidates = np.flatnonzero((lm_of_kp < 0) & frame.has_depth & admissible)
@@ -128,7 +131,8 @@ class LocalMapper:
             octave=frame.octaves[kp], anchor_kf=np.full(n, kf_id), n_obs=np.zeros(n, np.int32),
             visible=np.ones(n, np.int32), found=np.ones(n, np.int32), dynamic_sum=np.zeros(n),
             dynamic_hits=np.zeros(n, np.int32),
-            bad=np.zeros(n, bool), in_graph=np.zeros(n, bool))
+            bad=np.zeros(n, bool), in_graph=np.zeros(n, bool),
+            color=np.zeros((n, 3), np.uint8) if colors is None else colors[kp])
         lm_of_kp[kp] = ids
         self._record_observations(kf_id, frame, kp, ids)
         return n

@@ -176,7 +176,8 @@ def load_map(path: PathLike) -> tuple[SlamMap, dict, str]:
                 "kf_feature_offsets", "kf_scale_factors", "covisibility", "feat_landmark_of_keypoint"]
     required += [f"feat_{n}" for n in _FEATURE_FIELDS]
     lm_columns, obs_columns = landmark_table()._data, observation_table()._data
-    required += [f"lm_{n}" for n in lm_columns] + [f"obs_{n}" for n in obs_columns]
+    optional = {"lm_color"}  # added after version 1 went out: absent means unknown (black)
+    required += [f"lm_{n}" for n in lm_columns if f"lm_{n}" not in optional] + [f"obs_{n}" for n in obs_columns]
     missing = [k for k in required if k not in arrays]
     if missing:
         raise MapFormatError(f"{path}: dynslam map is missing members {missing}")
@@ -224,6 +225,7 @@ def _build_map(a: dict, path: Path, lm_columns: dict, obs_columns: dict) -> Slam
     for prefix, table, columns in (("lm", slam_map.landmarks, lm_columns), ("obs", slam_map.observations, obs_columns)):
         n = len(a[f"{prefix}_{next(iter(columns))}"])
         for name, arr in columns.items():
+            a.setdefault(f"{prefix}_{name}", np.zeros((n,) + arr.shape[1:], arr.dtype))
             value = a[f"{prefix}_{name}"]
             _expect(value.shape == (n,) + arr.shape[1:], path,
                     f"{prefix}_{name} has shape {value.shape}, expected {(n,) + arr.shape[1:]}")

@@ -53,6 +53,7 @@ def landmark_table() -> GrowableTable:
         "visible": ((), np.int32), "found": ((), np.int32), "dynamic_sum": ((), np.float64),
         "dynamic_hits": ((), np.int32),
         "bad": ((), np.bool_), "in_graph": ((), np.bool_),
+        "color": ((3,), np.uint8),          # BGR, sampled from the creating keyframe's image
     })
 
 

@@ -113,6 +113,7 @@ class System:
             frame.dynamic_prob = np.clip(np.nan_to_num(probs, nan=0.0), 0.0, 1.0)
             frame = self._refill_static(frame, gray, depth)
         self.last_frame = frame
+        self._last_rgb = rgb
         if self.localization_only:
             output = self._localize(frame)
         elif self.tracker.state == TrackingState.NOT_INITIALIZED:
@@ -144,6 +145,15 @@ class System:
             extra = extra.subset(distance > 2.0)  # not a re-detection of a feature we have
         extra.dynamic_prob = keypoints_in_mask(mask, extra.uv_raw).astype(float)
         return frame.append(extra)
+
+    def _keypoint_colors(self, frame: FeatureFrame) -> np.ndarray:
+        """BGR colour under each keypoint (grey images give grey colours), for coloured map exports."""
+        rgb = self._last_rgb
+        h, w = rgb.shape[:2]
+        u = np.clip(np.round(frame.uv_raw[:, 0]).astype(int), 0, w - 1)
+        v = np.clip(np.round(frame.uv_raw[:, 1]).astype(int), 0, h - 1)
+        px = rgb[v, u]
+        return (np.repeat(px[:, None], 3, axis=1) if rgb.ndim == 2 else px[:, :3]).astype(np.uint8)
 
     @property
     def last_dynamic_mask(self) -> Optional[np.ndarray]:
@@ -191,7 +201,7 @@ class System:
             return FrameOutput(frame.index, frame.timestamp, TrackingState.NOT_INITIALIZED, None, False, len(frame), 0)
         T_wc = np.eye(4)
         with self.timer.measure("backend"):
-            self.mapper.insert_keyframe(frame, T_wc, np.full(len(frame), -1, np.int64))
+            self.mapper.insert_keyframe(frame, T_wc, np.full(len(frame), -1, np.int64), self._keypoint_colors(frame))
         kf = self.mapper.map.keyframes[0]
         self.tracker.initialize(frame, invert(T_wc), kf.landmark_of_keypoint)
         self._reference_kf, self._last_keyframe_frame = 0, len(self._frames)
@@ -213,7 +223,8 @@ class System:
             is_keyframe = self._decide_keyframe(frame, T_wc, result.landmark_of_keypoint, len(tracked_ids))
         if is_keyframe:
             with self.timer.measure("backend"):
-                insertion = self.mapper.insert_keyframe(frame, T_wc, result.landmark_of_keypoint)
+                insertion = self.mapper.insert_keyframe(frame, T_wc, result.landmark_of_keypoint,
+                                                        self._keypoint_colors(frame))
             self.tracker.adopt_keyframe_landmarks(self.mapper.map.keyframes[insertion.kf_id].landmark_of_keypoint)
             self._reference_kf, self._last_keyframe_frame = insertion.kf_id, len(self._frames)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
