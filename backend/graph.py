@@ -85,6 +85,7 @@ class FactorGraphBackend:
         self._landmarks: set[int] = set()
         self._estimate: Optional[gtsam.Values] = None
         self._noise_cache: dict[tuple, gtsam.noiseModel.Base] = {}
+        self._relative: dict[int, tuple[int, int, np.ndarray]] = {}   # handle -> (a, b, T_ab) of pose factors
 
     # --- variables ------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, T_wc_guess: np.ndarray) -> None:
@@ -149,7 +150,20 @@ class FactorGraphBackend:
             noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(kernel_k), noise)
         elif kernel is not None:
             raise BackendError(f"unknown kernel '{kernel}' (use 'huber', 'cauchy' or None)")
-        return self._add_factor(gtsam.BetweenFactorPose3(X(kf_a), X(kf_b), pose3(T_ab), noise))
+        handle = self._add_factor(gtsam.BetweenFactorPose3(X(kf_a), X(kf_b), pose3(T_ab), noise))
+        self._relative[handle] = (kf_a, kf_b, np.array(T_ab, dtype=float))
+        return handle
+
+    def relative_pose_error(self, handle: int) -> tuple[float, float]:
+        """How far the current estimate is from a relative-pose factor's measurement: (metres, degrees)
+        of ``T_ab^-1 T_wa^-1 T_wb``. Used to find loops that the rest of the graph contradicts."""
+        if handle not in self._relative:
+            raise BackendError(f"factor handle {handle} is not a live relative-pose factor")
+        a, b, T_ab = self._relative[handle]
+        T_a, T_b = self.keyframe_pose(a), self.keyframe_pose(b)
+        E = np.linalg.solve(T_ab, np.linalg.solve(T_a, T_b))
+        angle = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        return float(np.linalg.norm(E[:3, 3])), float(angle)
 
     def remove_factors(self, handles: Iterable[int]) -> None:
         """Remove factors by their handles: pending ones are dropped, solved ones leave iSAM2 in
@@ -160,32 +174,35 @@ class FactorGraphBackend:
             raise BackendError(f"unknown factor handle(s) {unknown} (already removed?)")
         for h in handles:
             self._pending_factors.pop(h, None)
+            self._relative.pop(h, None)
         indices = [self._factor_index.pop(h) for h in handles if h in self._factor_index]
         if indices:
             self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), indices)
             self._settle()
 
     # --- solving --------------------------------------------------------------------------------
-    def update(self, extra_updates: Optional[int] = None) -> None:
+    def update(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
+        """Add pending factors and variables and solve. ``relinearize`` relinearises on every one of
+        the updates whatever ``relinearize_skip`` says: after a loop, many variables move far."""
         graph = gtsam.NonlinearFactorGraph()
         handles = list(self._pending_factors)
         for handle in handles:
             graph.add(self._pending_factors[handle])
         values, self._pending_values, self._pending_factors = self._pending_values, gtsam.Values(), {}
-        result = self._run_update(graph, values, [])
+        result = self._run_update(graph, values, [], relinearize)
         for handle, index in zip(handles, result.getNewFactorsIndices()):
             self._factor_index[handle] = index
-        self._settle(extra_updates)
+        self._settle(extra_updates, relinearize)
 
-    def _settle(self, extra_updates: Optional[int] = None) -> None:
+    def _settle(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
         n = self.params.extra_updates if extra_updates is None else extra_updates
         for _ in range(n):
-            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [])
+            self._run_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], relinearize)
         self._estimate = self._isam.calculateEstimate()
 
-    def _run_update(self, graph, values, remove: list[int]):
+    def _run_update(self, graph, values, remove: list[int], relinearize: bool = False):
         try:
-            return self._isam.update(graph, values, remove)
+            return self._isam.update(graph, values, remove, force_relinearize=relinearize)
         except RuntimeError as exc:
             raise BackendError(f"iSAM2 update failed: {exc}") from exc
 

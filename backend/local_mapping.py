@@ -84,32 +84,29 @@ class LocalMapper:
         ok = ~lm.bad[lm_ids]
         kp, lm_ids = kp[ok], lm_ids[ok]
         lm_of_kp[np.flatnonzero(lm_of_kp >= 0)[~ok]] = -1
-        rows = self._record_observations(kf_id, frame, kp, lm_ids)
+        rows = self.record_observations(kf_id, frame, kp, lm_ids)
         in_graph = lm.in_graph[lm_ids]
-        self._add_factors(rows[in_graph])
-        to_promote = lm_ids[~in_graph]
-        for lm_id in to_promote:
-            self.graph.add_landmark(int(lm_id), lm.xyz[lm_id])
-        lm.in_graph[to_promote] = True
-        obs = self.map.observations
-        self._add_factors(np.flatnonzero(np.isin(obs.lm, to_promote) & ~obs.in_graph))
-        return len(to_promote)
+        self.add_factors(rows[in_graph])
+        self.promote_landmarks(lm_ids[~in_graph])
+        return int((~in_graph).sum())
 
-    def _record_observations(self, kf_id: int, frame: FeatureFrame, kp: np.ndarray, lm_ids: np.ndarray) -> np.ndarray:
+    def record_observations(self, kf_id: int, frame: FeatureFrame, kp: np.ndarray, lm_ids: np.ndarray) -> np.ndarray:
         depth = np.where(frame.has_depth[kp], frame.depths[kp], 0.0)
         rows = self.map.observations.append(
             kf=np.full(len(kp), kf_id), lm=lm_ids, kp=kp, uv=frame.uv[kp], depth=depth,
-            level_scale=frame.level_scale[kp], dynamic_prob=frame.dynamic_prob[kp], in_graph=np.zeros(len(kp), bool))
+            level_scale=frame.level_scale[kp], dynamic_prob=frame.dynamic_prob[kp], in_graph=np.zeros(len(kp), bool),
+            factor=np.full(len(kp), -1, np.int64))
         lm = self.map.landmarks
         np.add.at(lm.n_obs, lm_ids, 1)
         np.add.at(lm.dynamic_sum, lm_ids, frame.dynamic_prob[kp])
         return rows
 
-    def _add_factors(self, rows: np.ndarray) -> None:
+    def add_factors(self, rows: np.ndarray) -> None:
+        """Observation rows become graph factors (their landmarks must be graph variables)."""
         obs = self.map.observations
         for r in rows:
-            self.graph.add_observation(int(obs.kf[r]), int(obs.lm[r]), obs.uv[r], float(obs.depth[r]),
-                                       float(obs.level_scale[r]), float(obs.dynamic_prob[r]))
+            obs.factor[r] = self.graph.add_observation(int(obs.kf[r]), int(obs.lm[r]), obs.uv[r], float(obs.depth[r]),
+                                                       float(obs.level_scale[r]), float(obs.dynamic_prob[r]))
         obs.in_graph[rows] = True
 
     # --- creation ----------------------------------------------------------------------------------
@@ -134,10 +131,24 @@ class LocalMapper:
             bad=np.zeros(n, bool), in_graph=np.zeros(n, bool),
             color=np.zeros((n, 3), np.uint8) if colors is None else colors[kp])
         lm_of_kp[kp] = ids
-        self._record_observations(kf_id, frame, kp, ids)
+        self.record_observations(kf_id, frame, kp, ids)
         return n
 
     # --- estimates and culling ---------------------------------------------------------------------
+    def promote_landmarks(self, lm_ids: np.ndarray) -> None:
+        """Anchored landmarks become graph variables, with all their recorded observations as factors."""
+        lm = self.map.landmarks
+        to_promote = np.unique(lm_ids[~lm.in_graph[lm_ids]])
+        for lm_id in to_promote:
+            self.graph.add_landmark(int(lm_id), lm.xyz[lm_id])
+        lm.in_graph[to_promote] = True
+        obs = self.map.observations
+        self.add_factors(np.flatnonzero(np.isin(obs.lm, to_promote) & ~obs.in_graph))
+
+    def refresh_from_graph(self) -> None:
+        """Copy the graph's current estimates into the map (after an update outside insert_keyframe)."""
+        self._pull_estimates()
+
     def _pull_estimates(self) -> None:
         kf_ids, poses = self.graph.keyframe_poses()
         self.map.kf_T_wc[kf_ids] = poses

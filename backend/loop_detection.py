@@ -19,7 +19,7 @@ of ``ComputeSim3`` (RGB-D: scale is known, so an SE(3) PnP against the map repla
    grows by one per consecutive keyframe. Only candidates whose count reaches ``consistency`` go on
    (one keyframe with a lucky BoW score is not enough; a real revisit keeps matching).
 4. **Geometric verification (static features only).** The keyframe's static descriptors are matched
-   (``cv2.BFMatcher`` Hamming, Lowe ratio 0.75, one keypoint per landmark) to the good landmarks
+   (``backend.pnp_verification``: Hamming, Lowe ratio 0.75, one keypoint per landmark) to the good landmarks
    observed by the candidate and its covisible neighbours; ``cv2.solvePnPRansac`` (seeded with
    ``cv2.setRNGSeed``) on world landmark positions vs. the keyframe's undistorted pixels
    (``camera.K``, no distortion) gives a pose that is refined with ``SOLVEPNP_ITERATIVE`` on the
@@ -39,11 +39,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
-import cv2
 import numpy as np
 
 from backend.map_store import SlamMap
 from backend.place_recognition import KeyframeIndex, Vocabulary, score
+from backend.pnp_verification import PnpParams, solve_pnp
+from slam.geometry import invert
 
 __all__ = ["LoopCandidate", "LoopDetector"]
 
@@ -67,20 +68,6 @@ class LoopCandidate:
     matches: np.ndarray = field(repr=False)
 
 
-def _pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))[0]
-    T[:3, 3] = np.asarray(tvec, np.float64).ravel()
-    return T
-
-
-def _invert(T: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
-
-
 class LoopDetector:
     """Keeps its own ``KeyframeIndex`` and consistent groups; feed every new keyframe in order."""
 
@@ -98,19 +85,14 @@ class LoopDetector:
         self.min_covisible_shared = int(min_covisible_shared)
         self.consistency = int(consistency)
         self.min_inliers = int(min_inliers)
+        self.pnp = PnpParams(int(min_inliers), float(ratio), int(max_descriptor_distance), float(reprojection_error),
+                             int(ransac_iterations), depth_tolerance, int(seed))
         self.dynamic_threshold = float(dynamic_threshold)
         self.min_score_ratio = float(min_score_ratio)
         self.exclude_recent = int(exclude_recent)
         self.max_candidates = int(max_candidates)
-        self.ratio = float(ratio)
-        self.max_descriptor_distance = int(max_descriptor_distance)
-        self.reprojection_error = float(reprojection_error)
-        self.ransac_iterations = int(ransac_iterations)
-        self.depth_tolerance = depth_tolerance
-        self.seed = int(seed)
         self.index = KeyframeIndex(vocabulary)
         self._groups: list[tuple[np.ndarray, int]] = []  # (sorted keyframe ids, consistency count)
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
         self.last_candidates: list[tuple[int, float]] = []   # diagnostics of the last call
         self.last_consistent: list[int] = []
 
@@ -134,6 +116,11 @@ class LoopDetector:
             return None
         finally:
             self.index.add(kf_id, desc)
+
+    def index_keyframe(self, slam_map: SlamMap, kf_id: int) -> None:
+        """Add a keyframe's static words to the index without looking for a loop."""
+        feats = slam_map.keyframes[int(kf_id)].features
+        self.index.add(int(kf_id), feats.descriptors[self._static_mask(feats)])
 
     def remove_keyframe(self, kf_id: int) -> None:
         """Forget a culled keyframe (it can no longer be a candidate)."""
@@ -191,54 +178,12 @@ class LoopDetector:
         """Match static query features to the candidate neighbourhood's landmarks, PnP-RANSAC, refine."""
         feats = slam_map.keyframes[kf_id].features
         kp_idx = np.flatnonzero(static)
-        if len(kp_idx) < self.min_inliers:
-            return None
         points = slam_map.map_points(slam_map.landmarks_of_keyframes(self._group(slam_map, cand)))
-        if len(points) < self.min_inliers:
+        solution = solve_pnp(feats.descriptors[kp_idx], feats.uv[kp_idx], feats.depths[kp_idx], points,
+                             self.camera.K, self.pnp)
+        if solution is None:
             return None
-        q_desc = np.ascontiguousarray(feats.descriptors[kp_idx])
-        knn = self._matcher.knnMatch(q_desc, np.ascontiguousarray(points.descriptors), k=2)
-        rows = np.array([(m[0].queryIdx, m[0].trainIdx, m[0].distance,
-                          m[1].distance if len(m) > 1 else np.inf) for m in knn if len(m)], np.float64)
-        if len(rows) == 0:
-            return None
-        good = (rows[:, 2] < self.ratio * rows[:, 3]) & (rows[:, 2] <= self.max_descriptor_distance)
-        rows = rows[good]
-        # One keypoint per landmark: keep the closest descriptor (sort by distance, first of each).
-        rows = rows[np.argsort(rows[:, 2], kind="stable")]
-        _, first = np.unique(rows[:, 1].astype(np.int64), return_index=True)
-        rows = rows[np.sort(first)]
-        if len(rows) < self.min_inliers:
-            return None
-        q_local, lm_local = rows[:, 0].astype(np.int64), rows[:, 1].astype(np.int64)
-        obj = np.ascontiguousarray(points.xyz[lm_local], np.float64)
-        img = np.ascontiguousarray(feats.uv[kp_idx[q_local]], np.float64)
-        K = self.camera.K
-        cv2.setRNGSeed(self.seed)
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=self.ransac_iterations,
-                                                 reprojectionError=self.reprojection_error, confidence=0.999,
-                                                 flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inl is None or len(inl) < self.min_inliers:
-            return None
-        inl = inl.ravel()
-        ok, rvec, tvec = cv2.solvePnP(obj[inl], img[inl], K, None, rvec, tvec, useExtrinsicGuess=True,
-                                      flags=cv2.SOLVEPNP_ITERATIVE)
-        if not ok:
-            return None
-        T_cw = _pose_from_rvec(rvec, tvec)
-        pc = obj @ T_cw[:3, :3].T + T_cw[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            proj = pc[:, :2] / pc[:, 2:3] * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
-        err = np.linalg.norm(proj - img, axis=1)
-        inlier = (pc[:, 2] > 0) & (err < self.reprojection_error)
-        if self.depth_tolerance is not None:
-            measured = np.asarray(feats.depths, np.float64)[kp_idx[q_local]]
-            has = measured > 0
-            inlier &= ~has | (np.abs(pc[:, 2] - measured) <= self.depth_tolerance * np.where(has, measured, 1.0))
-        n = int(inlier.sum())
-        if n < self.min_inliers:
-            return None
-        T_wc = _invert(T_cw)
-        T_match_query = _invert(slam_map.kf_T_wc[cand]) @ T_wc
-        pairs = np.stack([kp_idx[q_local[inlier]], points.ids[lm_local[inlier]]], axis=1).astype(np.int64)
-        return LoopCandidate(kf_id, int(cand), T_wc, T_match_query, n, float(bow_score), pairs)
+        T_wc = invert(solution.T_cw)
+        T_match_query = invert(slam_map.kf_T_wc[cand]) @ T_wc
+        pairs = np.stack([kp_idx[solution.feature_idx], solution.landmark_ids], axis=1).astype(np.int64)
+        return LoopCandidate(kf_id, int(cand), T_wc, T_match_query, len(pairs), float(bow_score), pairs)

@@ -8,7 +8,7 @@ Its members (K keyframes, F keyframe features in all, L pyramid levels, M landma
 member                          shape, dtype     meaning
 ==============================  ===============  ===========================================================
 ``format``                      (), unicode      always ``"dynslam-map"``
-``version``                     (), int64        format version, ``1``
+``version``                     (), int64        format version, ``2`` (``1`` is still read)
 ``camera_json``                 (), unicode      camera intrinsics as JSON: fx, fy, cx, cy, width, height,
                                                  distortion, bf, depth_scale, name (``camera_info``)
 ``config_yaml``                 (), unicode      the resolved configuration of the run that built the map
@@ -34,6 +34,10 @@ member                          shape, dtype     meaning
 ``covisibility``                (K,K) int32      shared-landmark counts between keyframes
 ==============================  ===============  ===========================================================
 
+Version 2 adds the landmark ``color`` (BGR uint8) and observation ``factor`` columns, and the
+vocabulary, keyframe words and loop members documented in ``backend.map_io_places``. Version-1
+files still load (without those).
+
 Feature arrays keep the dtypes they had in memory. Landmark ids are row indices of the landmark
 table; culled landmarks stay in the table with ``bad`` set, so ids remain valid. The iSAM2 graph is
 not saved: a loaded map is meant for localisation against fixed landmarks (or as the starting point
@@ -50,16 +54,20 @@ import json
 import os
 import zipfile
 from pathlib import Path
-from typing import Any, Mapping, Union
+from dataclasses import dataclass
+from typing import Any, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
+from backend.map_io_places import PlaceData, place_arrays, read_place_arrays
 from backend.map_store import KeyframeRecord, SlamMap, landmark_table, observation_table
+from backend.place_recognition import KeyframeIndex
 from slam.atomic_io import write_npz_atomic
 from slam.frame import FeatureFrame
 
 FORMAT_NAME = "dynslam-map"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)   # version 1: no colour, factor handles, vocabulary, keyframe words or loops
 
 PathLike = Union[str, os.PathLike]
 
@@ -131,9 +139,13 @@ def _map_arrays(slam_map: SlamMap, camera_info: Mapping, config_yaml: str) -> di
     return arrays
 
 
-def save_map(path: PathLike, slam_map: SlamMap, camera_info: Mapping, config_yaml: str) -> None:
-    """Write ``slam_map`` to ``path`` in the dynslam-map format, atomically."""
-    write_npz_atomic(path, **_map_arrays(slam_map, camera_info, config_yaml))
+def save_map(path: PathLike, slam_map: SlamMap, camera_info: Mapping, config_yaml: str,
+             index: Optional[KeyframeIndex] = None, loops: Sequence = ()) -> None:
+    """Write ``slam_map`` (with the keyframe index and its vocabulary, and the loops, when given) to
+    ``path`` in the dynslam-map format, atomically."""
+    arrays = _map_arrays(slam_map, camera_info, config_yaml)
+    arrays.update(place_arrays(slam_map.num_keyframes, index, loops))
+    write_npz_atomic(path, **arrays)
 
 
 # ----------------------------------------------------------------------------------------- loading
@@ -160,8 +172,22 @@ def _scalar_str(arrays: dict, key: str, path: Path) -> str:
     return str(value[()])
 
 
-def load_map(path: PathLike) -> tuple[SlamMap, dict, str]:
-    """Read a map file: (SlamMap, camera_info, config_yaml). Raises ``MapFormatError``."""
+@dataclass
+class LoadedMap:
+    slam_map: SlamMap
+    camera_info: dict
+    config_yaml: str
+    places: PlaceData       # vocabulary, keyframe words and loops (empty for version-1 files)
+
+    def __iter__(self):     # ``slam_map, camera_info, config_yaml = load_map(path)`` keeps working
+        return iter((self.slam_map, self.camera_info, self.config_yaml))
+
+    def __getitem__(self, i: int):
+        return (self.slam_map, self.camera_info, self.config_yaml)[i]
+
+
+def load_map(path: PathLike) -> LoadedMap:
+    """Read a map file. Raises ``MapFormatError`` naming the path and the problem."""
     path = Path(path)
     arrays = _read_arrays(path)
     if "format" not in arrays or arrays["format"].dtype.kind != "U" or str(arrays["format"][()]) != FORMAT_NAME:
@@ -169,14 +195,14 @@ def load_map(path: PathLike) -> tuple[SlamMap, dict, str]:
     version = arrays.get("version")
     if version is None or version.shape != () or version.dtype.kind not in "iu":
         raise MapFormatError(f"{path}: dynslam map without a valid version number")
-    if int(version) != FORMAT_VERSION:
+    if int(version) not in READABLE_VERSIONS:
         raise MapFormatError(f"{path}: dynslam map version {int(version)} is not supported "
-                             f"(this dynslam reads version {FORMAT_VERSION})")
+                             f"(this dynslam reads versions {', '.join(map(str, READABLE_VERSIONS))})")
     required = ["camera_json", "config_yaml", "kf_id", "kf_frame_index", "kf_timestamp", "kf_T_wc",
                 "kf_feature_offsets", "kf_scale_factors", "covisibility", "feat_landmark_of_keypoint"]
     required += [f"feat_{n}" for n in _FEATURE_FIELDS]
     lm_columns, obs_columns = landmark_table()._data, observation_table()._data
-    optional = {"lm_color"}  # added after version 1 went out: absent means unknown (black)
+    optional = {"lm_color", "obs_factor"}  # added after version 1 went out: absent means unknown (black)
     required += [f"lm_{n}" for n in lm_columns if f"lm_{n}" not in optional] + [f"obs_{n}" for n in obs_columns]
     missing = [k for k in required if k not in arrays]
     if missing:
@@ -189,7 +215,8 @@ def load_map(path: PathLike) -> tuple[SlamMap, dict, str]:
         raise MapFormatError(f"{path}: camera_json should be a JSON object")
     config_yaml = _scalar_str(arrays, "config_yaml", path)
     slam_map = _build_map(arrays, path, lm_columns, obs_columns)
-    return slam_map, camera_info, config_yaml
+    places = read_place_arrays(arrays, path, slam_map.num_keyframes, MapFormatError)
+    return LoadedMap(slam_map, camera_info, config_yaml, places)
 
 
 def _expect(cond: bool, path: Path, what: str) -> None:

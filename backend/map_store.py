@@ -62,6 +62,7 @@ def observation_table() -> GrowableTable:
         "kf": ((), np.int64), "lm": ((), np.int64), "kp": ((), np.int64), "uv": ((2,), np.float64),
         "depth": ((), np.float64), "level_scale": ((), np.float64), "dynamic_prob": ((), np.float64),
         "in_graph": ((), np.bool_),
+        "factor": ((), np.int64),           # back-end factor handle while in the graph, else -1
     })
 
 

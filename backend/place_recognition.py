@@ -227,11 +227,8 @@ class Vocabulary:
     # ------------------------------------------------------------------ persistence
     def save(self, path: Union[str, os.PathLike]) -> Path:
         """Write the documented ``.npz`` format atomically (temp file + fsync + os.replace)."""
-        return write_npz_atomic(
-            path, format=np.array(_FORMAT), version=np.array(VOCABULARY_VERSION, np.int64),
-            k=np.array(self.k, np.int64), levels=np.array(self.levels, np.int64),
-            n_training_docs=np.array(self.n_training_docs, np.int64),
-            node_descriptors=self.node_descriptors, node_parents=self.node_parents, idf=self.idf)
+        return write_npz_atomic(path, format=np.array(_FORMAT), version=np.array(VOCABULARY_VERSION, np.int64),
+                                **self.to_arrays())
 
     @classmethod
     def load(cls, path: Union[str, os.PathLike]) -> "Vocabulary":
@@ -256,6 +253,17 @@ class Vocabulary:
             raise
         except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zipfile.LargeZipFile) as e:
             raise VocabularyError(f"{path}: cannot read vocabulary ({type(e).__name__}: {e})") from e
+        return cls.from_arrays(a, str(path))
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The members of the file format (also embedded, prefixed, in map files)."""
+        return {"k": np.array(self.k, np.int64), "levels": np.array(self.levels, np.int64),
+                "n_training_docs": np.array(self.n_training_docs, np.int64),
+                "node_descriptors": self.node_descriptors, "node_parents": self.node_parents, "idf": self.idf}
+
+    @classmethod
+    def from_arrays(cls, a: dict, source: str) -> "Vocabulary":
+        """A vocabulary from ``to_arrays`` members, checked; problems raise ``VocabularyError``."""
         desc, par, idf = a["node_descriptors"], a["node_parents"], a["idf"]
         k, levels, n_docs = int(a["k"]), int(a["levels"]), int(a["n_training_docs"])
         m = len(par)
@@ -273,11 +281,22 @@ class Vocabulary:
         if idf.dtype != np.float64 or idf.ndim != 1 or not np.all(np.isfinite(idf)) or np.any(idf < 0):
             problems.append("idf must be a finite non-negative float64 vector")
         if problems:
-            raise VocabularyError(f"{path}: inconsistent vocabulary: {'; '.join(problems)}")
+            raise VocabularyError(f"{source}: inconsistent vocabulary: {'; '.join(problems)}")
         vocab = cls(desc, par.astype(np.int32), idf, k, levels, n_docs)
         if len(idf) != vocab.n_words:
-            raise VocabularyError(f"{path}: idf has {len(idf)} entries for {vocab.n_words} words")
+            raise VocabularyError(f"{source}: idf has {len(idf)} entries for {vocab.n_words} words")
         return vocab
+
+
+DEFAULT_VOCABULARY = Path(__file__).resolve().parent / "data" / "orb_vocabulary.npz"
+"""Shipped with the package: 10 branches x 4 levels (9924 words) trained on every 4th colour image of
+the sequences in ../shared/data (TUM fr1 rpy/xyz/desk, Bonn crowd): ``dynslam vocabulary
+../shared/data/*/rgb -o backend/data/orb_vocabulary.npz --step 4 --branches 10 --levels 4``."""
+
+
+def load_vocabulary(path: Union[str, os.PathLike, None] = None) -> "Vocabulary":
+    """The vocabulary at ``path``, or the shipped default when ``path`` is None."""
+    return Vocabulary.load(DEFAULT_VOCABULARY if path is None else path)
 
 
 class KeyframeIndex:
@@ -311,13 +330,20 @@ class KeyframeIndex:
         if kf_id in self._bows:
             raise ValueError(f"keyframe {kf_id} is already indexed")
         v = self.vocabulary.bow(descriptors)
+        self.add_bow(kf_id, v)
+        return v
+
+    def add_bow(self, kf_id: int, v: BowVector) -> None:
+        """Index a keyframe by a BoW vector computed earlier (e.g. read from a map file)."""
+        kf_id = int(kf_id)
+        if kf_id in self._bows:
+            raise ValueError(f"keyframe {kf_id} is already indexed")
         self._bows[kf_id] = v
         if len(v):
             pos = np.searchsorted(self._words, v.words, side="right")
             self._words = np.insert(self._words, pos, v.words)
             self._kfs = np.insert(self._kfs, pos, kf_id)
             self._weights = np.insert(self._weights, pos, v.weights)
-        return v
 
     def remove(self, kf_id: int) -> None:
         """Drop keyframe ``kf_id`` (KeyError if absent)."""

@@ -122,6 +122,27 @@ class Tracker:
             method = "descriptors"
         if corr is None:
             return self._lose(frame)
+        return self._finish(frame, source, eligible, T_cw, corr, method)
+
+    def resume(self, frame: FeatureFrame, source: LocalMapSource, T_cw: np.ndarray, keypoints: np.ndarray,
+               points: MapPoints) -> TrackingResult:
+        """Resume from a pose found outside the tracker (relocalization: PnP of ``keypoints`` against
+        the landmarks ``points``): refine against the local map, or stay LOST if that fails."""
+        eligible = frame.dynamic_prob < self.cfg.dynamic_threshold
+        ok = eligible[keypoints]
+        corr = _Correspondences(keypoints[ok], points.ids[ok], points.xyz[ok])
+        T_cw, corr = self._optimize(frame, T_cw, corr)
+        if len(corr) < 15:
+            return self._lose(frame)
+        self._last_T_cw, self._velocity = None, None   # no motion model across the gap
+        return self._finish(frame, source, eligible, T_cw, corr, "relocalization")
+
+    def rebase(self, T_cw: np.ndarray) -> None:
+        """The map moved under the last frame (a loop correction): continue from its corrected pose."""
+        if self.state == TrackingState.OK:
+            self._last_T_cw = T_cw.copy()
+
+    def _finish(self, frame, source, eligible, T_cw, corr, method: str) -> TrackingResult:
         T_cw, corr, visible, local = self._track_local_map(frame, source, eligible, T_cw, corr,
                                                            wide=(method != "motion"))
         landmark_inliers = int((corr.point_ids >= 0).sum())

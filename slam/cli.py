@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 EXIT_USAGE = 2
+TRAJECTORY_FORMAT_NAMES = ("tum", "kitti", "euroc")   # = slam.config.TRAJECTORY_FORMATS (not imported: --help stays light)
 
 
 def _parse_overrides(pairs: Sequence[str]) -> dict:
@@ -33,19 +34,21 @@ def _parse_overrides(pairs: Sequence[str]) -> dict:
 
 
 def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str], overrides: dict):
-    """Defaults, then the camera of the dataset (its camera.yaml, or a preset guessed from the
-    folder name), then the user's files in order, then --set overrides."""
+    """Defaults, then the camera of the dataset (a bag's CameraInfo, an image folder's intrinsics.yaml,
+    a TUM folder's camera.yaml, else a preset guessed from the name), then the user's files in order,
+    then --set overrides."""
     from slam.config import SlamConfig, apply_overrides, apply_yaml
-    from slam.datasets import guess_camera, read_intrinsics
+    from slam.datasets import guess_camera, read_camera
 
     config = SlamConfig()
     camera_known = False
     if dataset_path is not None:
-        intrinsics = read_intrinsics(dataset_path)
+        found = read_camera(dataset_path)
         guessed = guess_camera(dataset_path)
-        if intrinsics:
+        if found:
+            intrinsics, source = found
             known = {f"camera.{k}": v for k, v in intrinsics.items() if hasattr(config.camera, k)}
-            apply_overrides(config, known, str(dataset_path / "camera.yaml"))
+            apply_overrides(config, known, str(source))
             camera_known = True
         elif guessed:
             apply_yaml(config, guessed)
@@ -57,7 +60,8 @@ def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str]
         apply_overrides(config, overrides, "--set")
     if dataset_path is not None and not camera_known:
         logging.getLogger("dynslam").warning(
-            "camera not recognised from the folder name; using default intrinsics "
+            "camera not recognised (no camera_info, intrinsics.yaml or camera.yaml, and the name "
+            "says no freiburg1/2/3 or bonn); using default intrinsics "
             "(pass --config tum_fr1|tum_fr2|tum_fr3|bonn or your own YAML)")
     return config
 
@@ -67,28 +71,25 @@ def _default_output(name: str) -> Path:
 
 
 def _progress_printer(total: int, quiet: bool):
-    state = {"start": time.perf_counter()}
+    """A one-line bar redrawn in place on a terminal, a plain line every 50 frames otherwise."""
+    from slam.progress import ProgressPrinter
 
-    def report(out, _seconds: float) -> None:
-        done = out.index + 1
-        if quiet or (done % 50 and done != total):
-            return
-        fps = done / max(time.perf_counter() - state["start"], 1e-9)
-        print(f"  frame {done}/{total}  {fps:5.1f} fps  state {out.state.value}", file=sys.stderr, flush=True)
-
-    return report
+    return ProgressPrinter(total, sys.stderr, quiet=quiet)
 
 
 def cmd_run(args) -> int:
-    from slam.datasets import DatasetError, TumDataset
+    from slam.datasets import DatasetError, is_rosbag, open_dataset
     from slam.pipeline import Pipeline
 
     root = Path(args.dataset)
-    if not root.is_dir():
-        raise DatasetError(f"dataset folder {root} does not exist (expected a TUM RGB-D folder with rgb.txt, "
-                           "depth.txt, rgb/ and depth/)")
+    expected = ("a TUM RGB-D folder with rgb.txt, depth.txt, rgb/ and depth/; a ROS .bag file or ROS 2 bag "
+                "folder; or a folder with color/, depth/ and intrinsics.yaml")
+    if not root.exists():
+        raise DatasetError(f"dataset {root} does not exist (expected {expected})")
+    if not root.is_dir() and not is_rosbag(root):
+        raise DatasetError(f"{root} is not a dataset (expected {expected})")
     config = resolve_run_config(root, args.config, _parse_overrides(args.set))
-    dataset = TumDataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
+    dataset = open_dataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
     if args.blackout:
         dataset = _blackout(dataset, args.blackout)
     output = Path(args.output) if args.output else _default_output(dataset.name)
@@ -97,13 +98,15 @@ def cmd_run(args) -> int:
     if args.load_map:
         from backend.map_io import check_camera_compatible, load_map
 
-        prior_map, camera_info, _ = load_map(args.load_map)
-        check_camera_compatible(camera_info, config.camera, args.load_map)
+        prior_map = load_map(args.load_map)
+        check_camera_compatible(prior_map.camera_info, config.camera, args.load_map)
     if args.save_map and not Path(args.save_map).parent.is_dir():
         raise FileNotFoundError(f"--save-map: folder {Path(args.save_map).parent} does not exist")
-    pipeline = Pipeline(dataset, config, output, args.max_frames, _progress_printer(total, args.quiet),
+    progress = _progress_printer(total, args.quiet)
+    pipeline = Pipeline(dataset, config, output, args.max_frames, progress,
                         save_map=args.save_map, prior_map=prior_map)
     summary = pipeline.run()
+    progress.finish()
     print(pipeline.format_summary())
     return 130 if summary.interrupted else 0
 
@@ -131,8 +134,10 @@ def cmd_demo(args) -> int:
     config = resolve_run_config(None, args.config, {**overrides, **_parse_overrides(args.set)})
     output = Path(args.output) if args.output else _default_output("synthetic")
     print(f"dynslam demo: {args.frames} frames of a generated textured room (seed {args.seed})", file=sys.stderr)
-    pipeline = Pipeline(sequence, config, output, None, _progress_printer(args.frames, args.quiet))
+    progress = _progress_printer(args.frames, args.quiet)
+    pipeline = Pipeline(sequence, config, output, None, progress)
     pipeline.run()
+    progress.finish()
     print(pipeline.format_summary())
     return 0
 
@@ -142,6 +147,15 @@ def cmd_eval(args) -> int:
 
     report = evaluate_files(args.groundtruth, args.estimate, args.max_dt)
     print(json.dumps(report.to_dict(), indent=2) if args.json else format_report(report))
+    return 0
+
+
+def cmd_export_trajectory(args) -> int:
+    """Write a results folder's trajectory in KITTI or EuRoC beside its TUM file; prints the files."""
+    from slam.trajectory_formats import export_trajectory, trajectory_kind
+
+    for path in export_trajectory(args.results_dir, args.format, trajectory_kind(args.online, args.keyframes)):
+        print(path)
     return 0
 
 
@@ -173,6 +187,40 @@ def cmd_vocabulary(args) -> int:
     vocabulary.save(args.output)
     print(f"{args.output}: {vocabulary.n_words} words from {sum(map(len, descriptors))} descriptors "
           f"of {len(descriptors)} images")
+    return 0
+
+
+def cmd_download(args) -> int:
+    """Fetch, verify and unpack one official TUM or Bonn sequence; prints the folder it made."""
+    from slam.download import download_sequence, parse_checksum
+
+    checksum = parse_checksum(args.checksum) if args.checksum else None
+    folder = download_sequence(args.kind, args.sequence, args.output, base_url=args.base_url,
+                               checksum=checksum, keep_archive=args.keep_archive)
+    print(folder)
+    print(f"dynslam download: ready, run it with: dynslam run {folder}", file=sys.stderr)
+    return 0
+
+
+def cmd_export(args) -> int:
+    """Sparse (landmarks) and dense (TSDF mesh + cloud) maps of a finished run, without re-running SLAM."""
+    from slam.config import ConfigError
+    from slam.map_export import ExportRequest, export_maps
+
+    if (args.results is None) == (args.map is None):
+        raise ConfigError("export needs a results folder or --map FILE (one of them)")
+    overrides = _parse_overrides(args.set)
+    if args.voxel is not None:   # truncation follows as 4 voxels unless set explicitly
+        overrides.setdefault("export.voxel_size", args.voxel)
+        overrides.setdefault("export.truncation", 4.0 * args.voxel)
+    both = not (args.sparse or args.dense)
+    request = ExportRequest(results_dir=None if args.results is None else Path(args.results),
+                            map_path=None if args.map is None else Path(args.map),
+                            dataset=None if args.dataset is None else Path(args.dataset),
+                            out_dir=None if args.out is None else Path(args.out), sparse=args.sparse or both,
+                            dense=args.dense or both, by_dynamic=args.by_dynamic, use_masks=not args.no_masks,
+                            overrides=overrides)
+    print(export_maps(request).format())
     return 0
 
 
@@ -221,6 +269,17 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", action="store_true", help="print the full report as JSON")
     ev.set_defaults(func=cmd_eval)
 
+    xt = sub.add_parser("export-trajectory", help="write a results folder's trajectory as KITTI or EuRoC",
+                        description="Converts trajectory.txt (or the online / keyframe file) of a results "
+                                    "folder; names: trajectory.kitti.txt + trajectory.kitti.times.txt, "
+                                    "trajectory.euroc.csv, trajectory_online.*, keyframes.* (see README, Outputs).")
+    xt.add_argument("results_dir", help="a dynslam results folder")
+    xt.add_argument("--format", "-f", required=True, choices=TRAJECTORY_FORMAT_NAMES)
+    which = xt.add_mutually_exclusive_group()
+    which.add_argument("--online", action="store_true", help="the causal poses (trajectory_online.txt)")
+    which.add_argument("--keyframes", action="store_true", help="the optimised keyframes (keyframes.txt)")
+    xt.set_defaults(func=cmd_export_trajectory)
+
     voc = sub.add_parser("vocabulary", help="build a place-recognition vocabulary from images")
     voc.add_argument("images", nargs="+", help="folders searched recursively for PNG/JPEG images")
     voc.add_argument("--output", "-o", required=True, help="vocabulary file (.npz)")
@@ -229,6 +288,31 @@ def build_parser() -> argparse.ArgumentParser:
     voc.add_argument("--levels", type=int, default=3)
     voc.add_argument("--seed", type=int, default=0)
     voc.set_defaults(func=cmd_vocabulary)
+
+    dl = sub.add_parser("download", help="download and unpack an official TUM RGB-D or Bonn sequence")
+    dl.add_argument("kind", help="tum or bonn")
+    dl.add_argument("sequence", help="e.g. freiburg1_xyz (tum) or crowd (bonn); full folder names work too")
+    dl.add_argument("--output", "-o", default=".", help="folder to unpack into (default: current folder)")
+    dl.add_argument("--base-url", help="download server root instead of the official one "
+                                       "(also $DYNSLAM_DOWNLOAD_BASE_URL)")
+    dl.add_argument("--checksum", metavar="ALGO:HEX", help="expected md5:HEX or sha256:HEX of the archive")
+    dl.add_argument("--keep-archive", action="store_true", help="keep the archive after unpacking")
+    dl.set_defaults(func=cmd_download)
+
+    exp = sub.add_parser("export", help="sparse and dense (TSDF) maps of a finished run")
+    exp.add_argument("results", nargs="?", help="results folder of a run (or give --map)")
+    exp.add_argument("--map", metavar="FILE", help="a saved map (.npz) instead of a results folder")
+    exp.add_argument("--dataset", metavar="PATH", help="read keyframe images from this TUM/Bonn folder")
+    exp.add_argument("--sparse", action="store_true", help="only the landmark point cloud (default: both)")
+    exp.add_argument("--dense", action="store_true", help="only the TSDF mesh and point cloud (default: both)")
+    exp.add_argument("--by-dynamic", action="store_true",
+                     help="colour landmarks by dynamic evidence (map_sparse_dynamic.ply) instead of the image")
+    exp.add_argument("--voxel", type=float, metavar="M", help="TSDF voxel size in metres (truncation 4 voxels)")
+    exp.add_argument("--no-masks", action="store_true", help="fuse dynamic pixels too (for comparison)")
+    exp.add_argument("--out", metavar="DIR", help="output folder (default: the results / map folder)")
+    exp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                     help="override an export setting, e.g. --set export.depth_max=3.0")
+    exp.set_defaults(func=cmd_export)
 
     cfg = sub.add_parser("config", help="print the default (or resolved) configuration as YAML")
     config_options(cfg)
@@ -243,15 +327,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     warnings.formatwarning = lambda message, category, *_args, **_kw: f"dynslam: warning: {message}\n"
     from slam.config import ConfigError
     from slam.datasets import DatasetError
+    from slam.download import DownloadError
     from slam.evaluation import EvaluationError
     from slam.trajectory import TrajectoryFormatError
     from frontend.detector import DetectorError
     from backend.map_io import MapCameraError, MapFormatError
+    from slam.map_export import MapExportError
 
     try:
         return args.func(args)
-    except (ConfigError, DatasetError, EvaluationError, TrajectoryFormatError, DetectorError,
-            FileNotFoundError, MapFormatError, MapCameraError) as exc:
+    except (ConfigError, DatasetError, DownloadError, EvaluationError, TrajectoryFormatError, DetectorError,
+            FileNotFoundError, MapFormatError, MapCameraError, MapExportError) as exc:
         print(f"dynslam {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
 

@@ -15,6 +15,8 @@ from typing import Any, Optional
 import yaml
 
 from slam.dynamic_config import DETECTOR_MODELS, FUSION_MODES, METHOD_NAMES, DynamicConfig
+from slam.loop_config import NON_NEGATIVE as LOOP_NON_NEGATIVE, POSITIVE as LOOP_POSITIVE
+from slam.loop_config import UNIT_INTERVAL as LOOP_UNIT_INTERVAL, LoopConfig, validate_loop
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
@@ -123,10 +125,36 @@ class BackendConfig:
     landmark_max_dynamic_prob: float = 0.25
 
 
+# Trajectory file formats a run can write besides TUM (slam.trajectory_formats implements them).
+TRAJECTORY_FORMATS = ("tum", "kitti", "euroc")
+
+
 @dataclass
 class OutputConfig:
     results_dir: str = "results"
     online_trajectory: bool = True
+    # Formats of the trajectory files (TUM is always written; kitti/euroc add copies, see README "Outputs").
+    trajectory_formats: list[str] = field(default_factory=lambda: ["tum"])
+    report: bool = True   # report/ folder: plots and index.html (a plotting failure only logs a warning)
+
+
+@dataclass
+class MapExportConfig:
+    """Maps a run leaves behind and ``dynslam export`` builds (slam.map_export, slam.tsdf)."""
+    save_map: bool = True          # <results>/map.npz, so the sparse map can be regenerated
+    sparse_ply: bool = True        # <results>/map_sparse.ply at the end of each run
+    voxel_size: float = 0.025      # TSDF voxel edge (m); coarsened with a warning past max_voxels
+    truncation: float = 0.1        # TSDF truncation distance (m), at least 2 voxels
+    depth_max: float = 4.0         # depth beyond this (m) is not fused: far Kinect-class depth is noise
+    # Depth pixels whose 5x5 neighbourhood spans more than this fraction of their depth are left out:
+    # flying pixels at depth edges otherwise leave streaks in free space (0 = keep all).
+    depth_edge_ratio: float = 0.05
+    # Pixels whose dynamic probability reaches mask_threshold, grown by mask_dilate_px (silhouettes
+    # are where the masks are least sure), get depth 0 before fusion, so movers leave no ghosts.
+    mask_threshold: float = 0.5
+    mask_dilate_px: int = 5
+    # The uniform volume costs ~47 bytes per voxel: 8M voxels ~ 380 MB whatever the scene.
+    max_voxels: int = 8_000_000
 
 
 @dataclass
@@ -138,6 +166,8 @@ class SlamConfig:
     backend: BackendConfig = field(default_factory=BackendConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     dynamic: DynamicConfig = field(default_factory=DynamicConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    export: MapExportConfig = field(default_factory=MapExportConfig)
     seed: int = 0
     max_association_dt: float = 0.02
 
@@ -160,7 +190,9 @@ _POSITIVE = {
 }
 _NON_NEGATIVE = {"camera.cx", "camera.cy", "camera.min_depth", "backend.depth_noise_coeff",
                  "backend.extra_updates", "keyframes.min_frames", "seed"}
-_UNIT_INTERVAL = {"tracking.match_ratio", "tracking.dynamic_threshold", "keyframes.tracked_ratio",
+_POSITIVE |= LOOP_POSITIVE
+_NON_NEGATIVE |= LOOP_NON_NEGATIVE
+_UNIT_INTERVAL = LOOP_UNIT_INTERVAL | {"tracking.match_ratio", "tracking.dynamic_threshold", "keyframes.tracked_ratio",
                   "backend.cull_found_ratio", "backend.dynamic_removal_threshold",
                   "backend.landmark_max_dynamic_prob", "dynamic.box_prior"}
 
@@ -230,9 +262,30 @@ def validate(config: SlamConfig, source: str = "<config>") -> SlamConfig:
         raise ConfigError(f"{source}: 'camera.min_depth' ({cam.min_depth}) must be below "
                           f"'camera.max_depth' ({cam.max_depth})")
     _validate_dynamic(config.dynamic, source)
+    validate_loop(config.loop, source, ConfigError)
+    _validate_export(config.export, source)
+    unknown_formats = [f for f in config.output.trajectory_formats if f not in TRAJECTORY_FORMATS]
+    if unknown_formats:
+        raise ConfigError(f"{source}: 'output.trajectory_formats' has unknown format(s) {unknown_formats} "
+                          f"(valid: {', '.join(TRAJECTORY_FORMATS)})")
     if config.orb.scale_factor <= 1.0:
         raise ConfigError(f"{source}: 'orb.scale_factor' must be > 1, got {config.orb.scale_factor}")
     return config
+
+
+def _validate_export(exp: MapExportConfig, source: str) -> None:
+    for key in ("voxel_size", "truncation", "depth_max", "max_voxels"):
+        if not getattr(exp, key) > 0:  # 'not >' also rejects NaN
+            raise ConfigError(f"{source}: 'export.{key}' must be > 0, got {getattr(exp, key)!r}")
+    if not exp.depth_edge_ratio >= 0:
+        raise ConfigError(f"{source}: 'export.depth_edge_ratio' must be >= 0, got {exp.depth_edge_ratio!r}")
+    if not 0.0 <= exp.mask_threshold <= 1.0:
+        raise ConfigError(f"{source}: 'export.mask_threshold' must be within [0, 1], got {exp.mask_threshold!r}")
+    if exp.mask_dilate_px < 0:
+        raise ConfigError(f"{source}: 'export.mask_dilate_px' must be >= 0, got {exp.mask_dilate_px!r}")
+    if exp.truncation < 2 * exp.voxel_size:
+        raise ConfigError(f"{source}: 'export.truncation' ({exp.truncation}) must be at least twice "
+                          f"'export.voxel_size' ({exp.voxel_size}): thinner bands leave holes in the mesh")
 
 
 def _validate_dynamic(dyn: DynamicConfig, source: str) -> None:

@@ -41,7 +41,8 @@ from slam.trajectory import PathLike, read_tum
 @dataclass
 class AteResult:
     """Absolute trajectory error. ``aligned_poses`` are the matched estimate poses
-    after applying ``alignment`` (4x4, ``s*R | t``), row-aligned with ``errors``."""
+    after applying ``alignment`` (4x4, ``s*R | t``), row-aligned with ``errors``, and so are
+    ``gt_positions`` (the matched ground-truth camera centres; None if built without them)."""
 
     rmse: float
     mean: float
@@ -56,6 +57,7 @@ class AteResult:
     alignment: np.ndarray
     aligned_poses: np.ndarray
     scale: float = 1.0
+    gt_positions: np.ndarray | None = None
 
     @property
     def stats(self) -> ErrorStats:
@@ -145,7 +147,8 @@ def ate(gt_t: np.ndarray, gt_poses: np.ndarray, est_t: np.ndarray, est_poses: np
     errors = np.linalg.norm(aligned[:, :3, 3] - gt_xyz, axis=1)
     stats = ErrorStats.from_errors(errors)
     return AteResult(**stats.to_dict(), n_matched=len(errors), errors=errors, timestamps=est_t[idx_est],
-                     gt_timestamps=gt_t[idx_gt], alignment=alignment, aligned_poses=aligned, scale=s)
+                     gt_timestamps=gt_t[idx_gt], alignment=alignment, aligned_poses=aligned, scale=s,
+                     gt_positions=gt_xyz)
 
 # ------------------------------------------------------------------- reports
 def _load(path: PathLike, role: str) -> tuple[np.ndarray, np.ndarray]:

@@ -8,11 +8,23 @@ A results folder holds:
 - ``trajectory.txt``           final per-frame poses following the optimised keyframes (TUM,
                                sorted; untracked frames appear only as ``# t LOST`` comments);
 - ``keyframes.txt``            optimised keyframe poses (TUM);
+- with ``output.trajectory_formats`` listing ``kitti`` / ``euroc``, the same three trajectories
+  converted from those TUM files (``dynslam export-trajectory`` does it later for any folder):
+  ``trajectory.kitti.txt`` + ``trajectory.kitti.times.txt`` (KITTI has no timestamps),
+  ``trajectory_online.kitti.txt`` + ``.times.txt``, ``keyframes.kitti.txt`` + ``.times.txt``,
+  ``trajectory.euroc.csv``, ``trajectory_online.euroc.csv``, ``keyframes.euroc.csv``. Use the
+  ``trajectory*`` files to evaluate the final result, ``trajectory_online*`` to judge what a
+  causal (live) system would have output, ``keyframes*`` for the optimised keyframes only; see
+  ``slam.trajectory_formats`` for the formats;
 - ``groundtruth.txt``          for generated sequences only, the exact camera path;
 - ``evaluation.json``          ATE / RPE when ground truth exists;
 - ``summary.json``             counts, per-module milliseconds per frame, ATE;
 - ``graph.g2o``, ``graph.json``   the optimised keyframe graph (g2o text: ``gtsam.readG2o``);
-- ``dynamic.csv``              with dynamic handling on: features flagged per frame, per method and fused.
+- ``dynamic.csv``              with dynamic handling on: features flagged per frame, per method and fused;
+- ``report/``                  with ``output.report`` (default on): ``index.html`` and the plots behind it
+                               (trajectory, ATE over time, RPE, timing, dynamic strip; see slam.report).
+For ``dynslam export`` (slam.run_artifacts): ``masks/`` (keyframes' dynamic masks), ``keyframes/``
+(keyframe images, when the dataset cannot give them back), ``map.npz`` and ``map_sparse.ply``.
 With ``save_map`` the final map is also written (dynslam-map .npz, see backend.map_io), atomically;
 with ``prior_map`` the run localises against that fixed map instead of building one.
 Final files are written atomically, also when the run is interrupted.
@@ -33,6 +45,7 @@ from slam.datasets.base import RGBDDataset
 from slam.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
 from slam.system import FrameOutput, System
 from slam.atomic_io import write_text_atomic
+from slam.run_artifacts import RunArtifacts, needs_keyframe_copies
 from slam.trajectory import TumStreamWriter, format_tum_line, tum_rows_from_poses, write_tum
 
 log = logging.getLogger("dynslam")
@@ -74,13 +87,17 @@ class Pipeline:
         self.save_map_path = Path(save_map) if save_map is not None else None
         if prior_map is None:
             self.system = System(config, sequence_name=getattr(dataset, "name", ""))
-        else:
-            self.system = System(config, sequence_name=getattr(dataset, "name", ""), prior_map=prior_map,
-                                 localization_only=True)
+        else:  # a SlamMap, or a backend.map_io.LoadedMap that also brings its vocabulary and words
+            places = getattr(prior_map, "places", None)
+            self.system = System(config, sequence_name=getattr(dataset, "name", ""),
+                                 prior_map=getattr(prior_map, "slam_map", prior_map), localization_only=True,
+                                 vocabulary=places.vocabulary if places else None,
+                                 prior_words=places.bows if places else None)
         root = getattr(dataset, "root", None)
         self.summary = RunSummary(dataset=getattr(dataset, "name", "dataset"), output_dir=str(self.output_dir),
                                   dataset_path=None if root is None else str(Path(root).resolve()))
         self.report: Optional[EvaluationReport] = None
+        self.artifacts = RunArtifacts(self.output_dir, config, needs_keyframe_copies(dataset))  # export inputs
 
     def run(self) -> RunSummary:
         self._prepare_output()
@@ -95,9 +112,11 @@ class Pipeline:
             self.system.close()
             self._write_result_poses()
         self._save_map()
+        self.artifacts.finish(self.system)
         self._write_graph()
         self._run_evaluation()
         self._write_summary()
+        self._write_report()
         return self.summary
 
     # --- steps ------------------------------------------------------------------------------------
@@ -106,6 +125,9 @@ class Pipeline:
         write_text_atomic(self.output_dir / "config.yaml", self.config.to_yaml())
 
     def _run_pipeline(self) -> None:
+        from slam.report import make_strip_recorder
+
+        self.dynamic_strip = make_strip_recorder(self.config, self._expected_frames())
         with TumStreamWriter(self.output_dir / "trajectory_online.txt") as online:
             for frame in self.dataset:
                 if self.max_frames is not None and self.summary.frames >= self.max_frames:
@@ -113,6 +135,9 @@ class Pipeline:
                 t0 = time.perf_counter()
                 out = self.system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
                 self._record(out, online)
+                self.artifacts.on_frame(out, frame, self.system)
+                self.dynamic_strip.observe(self.summary.frames - 1, frame.rgb, self.system.last_frame,
+                                           self.system.last_dynamic_mask)
                 if self.progress is not None:
                     self.progress(out, time.perf_counter() - t0)
 
@@ -146,6 +171,9 @@ class Pipeline:
             self._write_dynamic_counts(stats.flagged)
         self.summary.skipped_files = [f"{p}: {why}" for p, why in getattr(self.dataset, "skipped", [])]
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
+        from slam.trajectory_formats import export_formats
+
+        export_formats(self.output_dir, self.config.output.trajectory_formats)
 
     def _write_graph(self) -> None:
         """graph.g2o and graph.json: the optimised keyframe graph (odometry + covisibility edges)."""
@@ -162,10 +190,7 @@ class Pipeline:
     def _save_map(self) -> None:
         if self.save_map_path is None:
             return
-        from backend.map_io import camera_info_from_config, save_map
-
-        save_map(self.save_map_path, self.system.mapper.map, camera_info_from_config(self.config.camera),
-                 self.config.to_yaml())
+        self.system.save_map(self.save_map_path)
         log.info("map saved to %s", self.save_map_path)
 
     def _write_dynamic_counts(self, flagged: dict[str, list[int]]) -> None:
@@ -195,6 +220,26 @@ class Pipeline:
 
     def _write_summary(self) -> None:
         write_text_atomic(self.output_dir / "summary.json", json.dumps(self.summary.to_dict(), indent=2) + "\n")
+
+    def _expected_frames(self) -> Optional[int]:
+        """Frames this run will process if it is not stopped (None when the dataset has no length)."""
+        try:
+            total = len(self.dataset)
+        except TypeError:
+            return self.max_frames
+        return total if self.max_frames is None else min(total, self.max_frames)
+
+    def _write_report(self) -> None:
+        """report/: plots and index.html (slam.report). Never fails the run: the results are written."""
+        if not self.config.output.report:
+            return
+        from slam.report import write_report
+
+        strip = getattr(self, "dynamic_strip", None)
+        try:
+            write_report(self.output_dir, self.summary.to_dict(), self.report, strip.thumbnails if strip else [])
+        except Exception as exc:
+            log.warning("report not written to %s (%s: %s)", self.output_dir / "report", type(exc).__name__, exc)
 
     def format_summary(self) -> str:
         s = self.summary

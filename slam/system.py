@@ -10,6 +10,7 @@ Wiring: extractor → dynamic filter → tracker → keyframe policy → local m
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Optional
 
@@ -18,12 +19,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from backend.local_mapping import LocalMapper
+from backend.loop_closing import LoopCloser
 from backend.map_store import SlamMap
+from backend.place_recognition import Vocabulary, load_vocabulary
+from backend.pnp_verification import PnpParams
+from backend.relocalization import Relocalizer
 from frontend.dynamic import DynamicFilter, build_dynamic_filter
 from frontend.dynamic.base import keypoints_in_mask
 from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_keyframe
 from frontend.orb_extractor import OrbExtractor
-from frontend.tracker import Tracker, TrackingState
+from frontend.tracker import Tracker, TrackingResult, TrackingState
 from slam.camera import PinholeCamera
 from slam.config import SlamConfig
 from slam.frame import FeatureFrame, MapPoints
@@ -77,9 +82,12 @@ class _WholeMapView(_MapView):
 
 class System:
     def __init__(self, config: SlamConfig, dynamic_filter: Optional[DynamicFilter] = None, sequence_name: str = "",
-                 detector=None, prior_map: Optional[SlamMap] = None, localization_only: bool = False):
+                 detector=None, prior_map: Optional[SlamMap] = None, localization_only: bool = False,
+                 vocabulary: Optional[Vocabulary] = None, prior_words: Optional[dict] = None):
         """``prior_map`` with ``localization_only=True``: track against a saved map that stays fixed
-        (no graph updates, keyframes, landmark creation or culling, no statistics written to it)."""
+        (no graph updates, keyframes, landmark creation or culling, no statistics written to it).
+        ``vocabulary``: place-recognition words (default: ``loop.vocabulary`` or the shipped one);
+        ``prior_words``: {keyframe id: BowVector} of the prior map, as saved with it."""
         if localization_only != (prior_map is not None):
             raise ValueError("prior_map and localization_only go together (extending a loaded map is not supported)")
         self.config = config
@@ -99,7 +107,26 @@ class System:
         self._last_keyframe_frame = -1
         self._reference_kf = -1
         self.last_frame: Optional[FeatureFrame] = None   # features (with dynamic_prob) of the last frame
+        self._build_place_recognition(vocabulary, prior_words or {})
         cv2.setRNGSeed(config.seed)  # PnP-RANSAC draws from OpenCV's global generator
+
+    def _build_place_recognition(self, vocabulary: Optional[Vocabulary], prior_words: dict) -> None:
+        """Loop closer (owns the keyframe index) and relocalizer (queries it). A prior map's keyframes
+        are indexed up front so a localisation run can relocalise anywhere in it."""
+        cfg, threshold = self.config.loop, self.config.tracking.dynamic_threshold
+        vocabulary = vocabulary or load_vocabulary(cfg.vocabulary or None)
+        self.loop_closer = LoopCloser(cfg, self.mapper, vocabulary, threshold, self.config.seed)
+        params = PnpParams(min_inliers=cfg.reloc_min_inliers, reprojection_error=cfg.reprojection_error,
+                           depth_tolerance=cfg.depth_tolerance, seed=self.config.seed)
+        self.relocalizer = Relocalizer(self.loop_closer.index, self.camera, params, cfg.reloc_candidates, threshold,
+                                       cfg.min_covisible_shared)
+        for kf in self.mapper.map.keyframes:
+            if kf.id in prior_words:
+                self.loop_closer.index.add_bow(kf.id, prior_words[kf.id])
+            else:
+                self.loop_closer.detector.index_keyframe(self.mapper.map, kf.id)
+        self.loop_times_ms: list[float] = []    # per keyframe
+        self.reloc_times_ms: list[float] = []   # per relocalization attempt
 
     # --- public -----------------------------------------------------------------------------------
     def process(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, index: Optional[int] = None) -> FrameOutput:
@@ -160,6 +187,13 @@ class System:
         """HxW float dynamic probability per pixel of the last frame (None with dynamic handling off)."""
         return getattr(self.dynamic_filter, "last_mask", None)
 
+    def save_map(self, path) -> None:
+        """Write the map with its keyframe index, vocabulary and loops (``backend.map_io``), atomically."""
+        from backend.map_io import camera_info_from_config, save_map
+
+        save_map(path, self.mapper.map, camera_info_from_config(self.config.camera), self.config.to_yaml(),
+                 self.loop_closer.index, self.loop_closer.loops)
+
     def close(self) -> None:
         """Release what the components hold open (e.g. save the detection cache)."""
         close = getattr(self.dynamic_filter, "close", None)
@@ -208,9 +242,25 @@ class System:
         self._frames.append(_FrameRecord(frame.timestamp, 0, np.eye(4)))
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, True, len(frame), len(frame))
 
+    def _relocalize(self, frame: FeatureFrame, source) -> Optional[TrackingResult]:
+        """BoW relocalization of a lost frame; None when disabled or no candidate verifies."""
+        if not self.config.loop.relocalization:
+            return None
+        with self.timer.measure("relocalization"):
+            start = time.perf_counter()
+            found = self.relocalizer.relocalize(self.mapper.map, frame)
+            result = None
+            if found is not None:
+                points = self.mapper.map.map_points(found.landmark_ids)
+                result = self.tracker.resume(frame, source, invert(found.T_wc), found.feature_idx, points)
+            self.reloc_times_ms.append((time.perf_counter() - start) * 1e3)
+        return result if result is not None and result.state == TrackingState.OK else None
+
     def _track(self, frame: FeatureFrame) -> FrameOutput:
-        with self.timer.measure("tracking"):
-            result = self.tracker.track(frame, self._map_view)
+        result = self._relocalize(frame, self._map_view) if self.tracker.state == TrackingState.LOST else None
+        if result is None:
+            with self.timer.measure("tracking"):
+                result = self.tracker.track(frame, self._map_view)
         if result.state != TrackingState.OK:
             self._frames.append(_FrameRecord(frame.timestamp, -1, None))
             return FrameOutput(frame.index, frame.timestamp, result.state, None, False, len(frame), 0)
@@ -229,16 +279,30 @@ class System:
             self._reference_kf, self._last_keyframe_frame = insertion.kf_id, len(self._frames)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
         self._frames.append(_FrameRecord(frame.timestamp, self._reference_kf, T_kf_c))
+        if is_keyframe:
+            self._close_loops(insertion.kf_id)
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids))
+
+    def _close_loops(self, kf_id: int) -> None:
+        """Loop detection/closing for a new keyframe; if the graph moved, tracking follows it."""
+        n_active = len(self.loop_closer.active_loops())
+        with self.timer.measure("loop"):
+            start = time.perf_counter()
+            edge = self.loop_closer.process_keyframe(kf_id)
+            self.loop_times_ms.append((time.perf_counter() - start) * 1e3)
+        if edge is not None or len(self.loop_closer.active_loops()) != n_active:
+            self.tracker.rebase(invert(self.mapper.map.kf_T_wc[kf_id] @ self._frames[-1].T_kf_c))
 
     def _localize(self, frame: FeatureFrame) -> FrameOutput:
         """Localisation-only: relocalise against the whole map at the start and after LOST, else
         track against the local map; the map is only read. The pose is stored relative to the
         (fixed) reference keyframe, which is the same as storing the absolute pose."""
         relocalize = self.tracker.state != TrackingState.OK
-        source = self._whole_map_view if relocalize else self._map_view
-        with self.timer.measure("tracking"):
-            result = self.tracker.track(frame, source)
+        result = self._relocalize(frame, self._map_view) if relocalize else None
+        if result is None:
+            source = self._whole_map_view if relocalize else self._map_view
+            with self.timer.measure("tracking"):
+                result = self.tracker.track(frame, source)
         if result.state != TrackingState.OK:
             self._frames.append(_FrameRecord(frame.timestamp, -1, None))
             return FrameOutput(frame.index, frame.timestamp, result.state, None, False, len(frame), 0)

@@ -44,7 +44,8 @@ def _rot_deg(R: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def run():
     seq = SyntheticSequence(n_frames=2)
-    system = System(load_config())
+    # Loop closing off: these tests run the detector alone over the uncorrected map.
+    system = System(load_config(overrides={"loop.enabled": False}))
     gt = {}
     for i in range(PERIOD + EXTRA):
         T = _pose(i)

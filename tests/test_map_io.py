@@ -78,7 +78,7 @@ def test_round_trip_gives_identical_arrays(synthetic_run):
     assert camera_info == camera_info_from_config(synthetic_run["config"].camera)
     assert config_yaml == synthetic_run["config"].to_yaml()
     with np.load(synthetic_run["path"], allow_pickle=False) as archive:  # no pickled members
-        assert str(archive["format"]) == "dynslam-map" and int(archive["version"]) == 1
+        assert str(archive["format"]) == "dynslam-map" and int(archive["version"]) == 2
 
 
 def test_atomic_save_leaves_no_temp_file(synthetic_run, tmp_path):

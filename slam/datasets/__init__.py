@@ -1,23 +1,54 @@
-"""RGB-D sequence sources: TUM/Bonn folders on disk and a seeded synthetic room."""
+"""RGB-D sequence sources: TUM/Bonn folders, ROS bags, image folders with intrinsics.yaml, and a seeded
+synthetic room."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Union
+from typing import Optional, Union
 
 from .base import RGBDDataset, RGBDFrame
+from .folder import INTRINSICS_FILE, ImageFolderDataset, is_image_folder, read_folder_intrinsics
+from .rosbag import RosbagDataset, is_rosbag, read_bag_camera
 from .synthetic import SyntheticSequence, write_tum_layout
-from .tum import (DatasetError, DatasetWarning, TumDataset, associate, guess_camera, load_groundtruth,
-                  read_intrinsics)
+from .tum import (CAMERA_FILE, DatasetError, DatasetWarning, TumDataset, associate, guess_camera,
+                  load_groundtruth, read_intrinsics)
 
 __all__ = [
     "RGBDDataset", "RGBDFrame", "SyntheticSequence", "write_tum_layout", "DatasetError", "DatasetWarning",
     "TumDataset", "associate", "guess_camera", "load_groundtruth", "read_intrinsics", "open_dataset",
+    "RosbagDataset", "ImageFolderDataset", "is_rosbag", "is_image_folder", "read_camera",
 ]
 
+AnyDataset = Union[TumDataset, RosbagDataset, ImageFolderDataset, SyntheticSequence]
 
-def open_dataset(path_or_name: Union[str, Path], **kwargs) -> Union[TumDataset, SyntheticSequence]:
-    """The string "synthetic" gives the default SyntheticSequence (kwargs go to its constructor); any
-    other string or Path is opened as a TUM-layout folder (write "./synthetic" for a folder of that name)."""
+
+def open_dataset(path_or_name: Union[str, Path], **kwargs) -> AnyDataset:
+    """The reader that fits ``path_or_name``; kwargs go to its constructor.
+
+    "synthetic" gives the default SyntheticSequence (write "./synthetic" for a folder of that name); a
+    ``.bag`` file or a ROS 2 bag folder gives a RosbagDataset (``depth_scale`` is dropped: a bag's
+    encoding fixes its depth units); a folder with intrinsics.yaml an ImageFolderDataset; anything else
+    is opened as a TUM-layout folder.
+    """
     if isinstance(path_or_name, str) and path_or_name == "synthetic":
         return SyntheticSequence(**kwargs)
+    if is_rosbag(path_or_name):
+        kwargs.pop("depth_scale", None)
+        return RosbagDataset(path_or_name, **kwargs)
+    if is_image_folder(path_or_name):
+        return ImageFolderDataset(path_or_name, **kwargs)
     return TumDataset(path_or_name, **kwargs)
+
+
+def read_camera(path: Union[str, Path]) -> Optional[tuple[dict, Path]]:
+    """(camera keys, where they came from) for a dataset path, or None when it names no camera.
+
+    Bags: their CameraInfo topic; image folders: intrinsics.yaml; TUM folders: an optional camera.yaml.
+    """
+    path = Path(path)
+    if is_rosbag(path):
+        camera = read_bag_camera(path)
+        return None if camera is None else (camera, path)
+    if is_image_folder(path):
+        return read_folder_intrinsics(path), path / INTRINSICS_FILE
+    camera = read_intrinsics(path)
+    return None if camera is None else (camera, path / CAMERA_FILE)

@@ -1,0 +1,129 @@
+"""Loop closing on the iSAM2 graph: detected loops become robust pose factors; bad ones are removed again.
+
+``LoopCloser.process_keyframe(kf_id)`` runs after each keyframe insertion:
+
+1. ``LoopDetector`` (BoW on static features, consistent groups, PnP verification) proposes a loop
+   between the new keyframe and an old one, with the query pose the old landmarks imply;
+2. the loop becomes a ``BetweenFactorPose3`` (match → query) under a Cauchy kernel: a correct loop
+   pulls, a wrong one that slipped through verification gets almost no weight;
+3. the landmarks on both sides are fused (``landmark_fusion``): the query keyframe now observes the
+   old landmarks, so the correction is carried by hundreds of observations, not one factor;
+4. iSAM2 runs ``extra_updates`` more updates (a loop moves many variables far from their
+   linearisation point) and the map takes the new estimates; every frame follows its reference
+   keyframe, so the whole per-frame trajectory is corrected;
+5. every live loop is re-checked: one the optimised graph disagrees with by more than
+   ``max_residual_t`` / ``max_residual_r_deg`` is removed by its factor handle (inconsistent loops can
+   also surface later, so the check runs after every keyframe).
+
+The keyframe index the detector keeps is also what relocalization queries. This module never
+imports the front end.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from backend.landmark_fusion import fuse_loop_landmarks
+from backend.local_mapping import LocalMapper
+from backend.loop_detection import LoopCandidate, LoopDetector
+from backend.place_recognition import KeyframeIndex, Vocabulary
+from slam.loop_config import LoopConfig
+
+
+@dataclass
+class LoopEdge:
+    """A loop constraint in the graph: ``T_match_query`` is the query pose seen from the match."""
+
+    query_kf: int
+    match_kf: int
+    T_match_query: np.ndarray
+    n_inliers: int
+    score: float
+    handle: int                   # factor handle in FactorGraphBackend (for removal)
+    source: str = "detected"      # "detected" by place recognition, or "injected" through the API
+    fused_landmarks: int = 0
+    active: bool = True
+    residual_t: float = 0.0       # disagreement with the optimised graph at the last check
+    residual_r_deg: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"query_kf": self.query_kf, "match_kf": self.match_kf, "n_inliers": self.n_inliers,
+                "score": round(self.score, 6), "source": self.source, "fused_landmarks": self.fused_landmarks,
+                "active": self.active, "residual_t_m": round(self.residual_t, 6),
+                "residual_r_deg": round(self.residual_r_deg, 4),
+                "T_match_query": np.round(self.T_match_query, 9).tolist()}
+
+
+class LoopCloser:
+    def __init__(self, cfg: LoopConfig, mapper: LocalMapper, vocabulary: Vocabulary, dynamic_threshold: float = 0.5,
+                 seed: int = 0) -> None:
+        self.cfg = cfg
+        self.mapper = mapper
+        self.detector = LoopDetector(
+            vocabulary, mapper.camera, min_covisible_shared=cfg.min_covisible_shared, consistency=cfg.consistency,
+            min_inliers=cfg.min_inliers, dynamic_threshold=dynamic_threshold, min_score_ratio=cfg.min_score_ratio,
+            exclude_recent=cfg.exclude_recent, max_candidates=cfg.max_candidates,
+            reprojection_error=cfg.reprojection_error, depth_tolerance=cfg.depth_tolerance, seed=seed)
+        self.loops: list[LoopEdge] = []
+
+    @property
+    def index(self) -> KeyframeIndex:
+        return self.detector.index
+
+    def process_keyframe(self, kf_id: int) -> Optional[LoopEdge]:
+        """Detect and close a loop for a newly inserted keyframe (which is indexed either way)."""
+        if not self.cfg.enabled:
+            self.detector.index_keyframe(self.mapper.map, kf_id)
+            return None
+        candidate = self.detector.process_keyframe(self.mapper.map, kf_id)
+        edge = self.close(candidate) if candidate is not None else None
+        if self.active_loops():
+            self.check_consistency()
+        return edge
+
+    def close(self, candidate: LoopCandidate) -> LoopEdge:
+        """Add a verified loop to the graph, fuse its landmarks and re-optimise."""
+        edge = self.add_constraint(candidate.match_kf, candidate.query_kf, candidate.T_match_query,
+                                   candidate.n_inliers, candidate.score, "detected", optimize=False)
+        if self.cfg.fuse_landmarks:
+            edge.fused_landmarks = fuse_loop_landmarks(self.mapper, candidate.query_kf, candidate.matches)
+        self.optimize()
+        return edge
+
+    def add_constraint(self, match_kf: int, query_kf: int, T_match_query: np.ndarray, n_inliers: int = 0,
+                       score: float = 0.0, source: str = "injected", optimize: bool = True) -> LoopEdge:
+        """A loop factor between two existing keyframes (also how other pipelines inject their own
+        loops); with ``optimize`` the graph is updated and the loop checked right away."""
+        kernel = None if self.cfg.kernel == "none" else self.cfg.kernel
+        handle = self.mapper.graph.add_relative_pose(int(match_kf), int(query_kf), T_match_query, self.cfg.sigma_t,
+                                                     self.cfg.sigma_r_deg, kernel=kernel, kernel_k=self.cfg.kernel_k)
+        edge = LoopEdge(int(query_kf), int(match_kf), np.array(T_match_query, float), int(n_inliers), float(score),
+                        handle, source)
+        self.loops.append(edge)
+        if optimize:
+            self.optimize()
+            self.check_consistency()
+        return edge
+
+    def optimize(self) -> None:
+        self.mapper.graph.update(extra_updates=self.cfg.extra_updates, relinearize=True)
+        self.mapper.refresh_from_graph()
+
+    def check_consistency(self) -> list[LoopEdge]:
+        """Remove live loops the optimised graph contradicts; returns the ones removed."""
+        removed = []
+        for edge in self.active_loops():
+            edge.residual_t, edge.residual_r_deg = self.mapper.graph.relative_pose_error(edge.handle)
+            if edge.residual_t > self.cfg.max_residual_t or edge.residual_r_deg > self.cfg.max_residual_r_deg:
+                removed.append(edge)
+        if removed:
+            self.mapper.graph.remove_factors([e.handle for e in removed])
+            for edge in removed:
+                edge.active = False
+            self.optimize()
+        return removed
+
+    def active_loops(self) -> list[LoopEdge]:
+        return [e for e in self.loops if e.active]

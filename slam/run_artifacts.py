@@ -1,0 +1,109 @@
+"""What a run leaves in its results folder so ``dynslam export`` can rebuild maps without re-running SLAM.
+
+- ``masks/<frame index:06d>.png``  per keyframe, the front end's dynamic probability (8-bit, 255 = 1.0),
+                                   written only with dynamic handling on;
+- ``keyframes/``                   when the frames cannot be re-read later (generated sequences, bags,
+                                   readers without random access): per keyframe ``color/<index>.png``
+                                   (BGR), ``depth/<index>.png`` (16-bit, millimetres) and ``frames.txt``
+                                   (frame index and timestamp per line);
+- ``map.npz``                      the final map (``backend.map_io``), unless ``export.save_map`` is off;
+- ``map_sparse.ply``               the landmarks as a coloured point cloud, unless ``export.sparse_ply`` is off.
+
+Every file is written atomically (temporary file in the same folder, then ``os.replace``).
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from slam.atomic_io import write_atomic, write_text_atomic
+
+log = logging.getLogger("dynslam")
+
+MASK_DIR = "masks"
+KEYFRAME_DIR = "keyframes"
+KEYFRAME_LIST = "frames.txt"
+KEYFRAME_DEPTH_SCALE = 1000.0   # keyframes/depth PNGs hold millimetres
+MAP_FILE = "map.npz"
+SPARSE_PLY = "map_sparse.ply"
+
+
+def write_png_atomic(path: Path, image: np.ndarray) -> None:
+    """Encode ``image`` as PNG in memory and write it atomically; raises naming the path on failure."""
+    ok, buffer = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"{path}: could not encode a {image.dtype} {image.shape} image as PNG")
+    write_atomic(path, lambda handle: handle.write(buffer.tobytes()))
+
+
+def mask_to_png(mask: np.ndarray) -> np.ndarray:
+    """Dynamic probability in [0, 1] (HxW float) to 8-bit, 255 = certainly dynamic."""
+    return np.round(np.clip(np.nan_to_num(mask, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def depth_to_millimetres(depth: np.ndarray) -> np.ndarray:
+    """Depth in metres (0 = invalid) to 16-bit millimetres, clipped to 65.535 m."""
+    mm = np.round(np.nan_to_num(depth.astype(np.float64), nan=0.0) * KEYFRAME_DEPTH_SCALE)
+    return np.clip(mm, 0, 65535).astype(np.uint16)
+
+
+def needs_keyframe_copies(dataset) -> bool:
+    """Whether export could not re-read the keyframes from the dataset (no folder, or no random access)."""
+    return getattr(dataset, "root", None) is None or not hasattr(dataset, "__getitem__")
+
+
+class RunArtifacts:
+    """Writes the export inputs during a run (keyframe masks and images) and the maps at its end."""
+
+    def __init__(self, output_dir: Path, config, copy_keyframes: bool):
+        self.output_dir = Path(output_dir)
+        self.config = config
+        self.copy_keyframes = copy_keyframes     # keep keyframe images: the dataset cannot give them back
+        self._keyframe_rows: list[str] = []
+
+    def on_frame(self, out, frame, system) -> None:
+        """Pipeline hook, once per processed frame: keyframes leave their mask (and images)."""
+        if not out.is_keyframe:
+            return
+        if hasattr(system.dynamic_filter, "last_mask"):   # dynamic handling on (the null filter has none)
+            mask = system.last_dynamic_mask
+            mask = np.zeros(frame.depth.shape, np.float32) if mask is None else mask
+            write_png_atomic(self.output_dir / MASK_DIR / f"{frame.index:06d}.png", mask_to_png(mask))
+        if self.copy_keyframes:
+            self._write_keyframe_images(frame)
+
+    def _write_keyframe_images(self, frame) -> None:
+        folder = self.output_dir / KEYFRAME_DIR
+        write_png_atomic(folder / "color" / f"{frame.index:06d}.png", frame.rgb)
+        write_png_atomic(folder / "depth" / f"{frame.index:06d}.png", depth_to_millimetres(frame.depth))
+        self._keyframe_rows.append(f"{frame.index} {frame.timestamp:.6f}")
+        header = "# frame_index timestamp (color/<index:06d>.png BGR, depth/<index:06d>.png uint16 mm)\n"
+        write_text_atomic(folder / KEYFRAME_LIST, header + "\n".join(self._keyframe_rows) + "\n")
+
+    def finish(self, system) -> None:
+        """At the end of a run: map.npz and map_sparse.ply (per ``config.export``)."""
+        if system.localization_only or system.mapper.map.num_keyframes == 0:
+            return   # a localisation run builds no map of its own
+        export = self.config.export
+        if export.save_map:
+            system.save_map(self.output_dir / MAP_FILE)
+        if export.sparse_ply:
+            from slam.map_export import write_sparse_ply
+
+            write_sparse_ply(self.output_dir / SPARSE_PLY, system.mapper.map)
+
+
+def read_keyframe_list(folder: Path) -> Optional[dict[float, int]]:
+    """{timestamp: frame index} from ``keyframes/frames.txt``, or None when the folder has none."""
+    path = Path(folder) / KEYFRAME_LIST
+    if not path.is_file():
+        return None
+    rows = [line.split() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    try:
+        return {float(t): int(i) for i, t in rows}
+    except ValueError as exc:
+        raise ValueError(f"{path}: expected 'frame_index timestamp' per line ({exc})") from None

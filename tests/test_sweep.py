@@ -1,0 +1,239 @@
+"""tools/sweep.py (and sweep_tables.py): a tiny sweep on a generated sequence (runs in parallel child processes, a failing
+configuration recorded as failed), the tables' statistics, the sweep file and the ablation alias."""
+from __future__ import annotations
+
+import contextlib
+import csv
+import importlib.util
+import io
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
+
+
+def load_tool(name: str):
+    spec = importlib.util.spec_from_file_location(f"{name}_tool", TOOLS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    sys.path.insert(0, str(TOOLS))  # ablation.py imports its sibling sweep.py
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(TOOLS))
+    return module
+
+
+sweep = load_tool("sweep")
+tables = load_tool("sweep_tables")
+FRAMES = 20
+
+
+def tiny_sweep_argv(root: Path) -> list[str]:
+    return ["--sequences", "synthetic:people", "--configs", "none", "dynamic_box_depth", str(root / "broken.yaml"),
+            "--repeats", "2", "--max-frames", str(FRAMES), "--jobs", "2", "--output", str(root / "out"),
+            "--detection-cache", str(root / "cache"), "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def tiny_sweep(tmp_path_factory):
+    """2 configurations × 2 repeats × 20 frames of walking people, plus a configuration whose file has an
+    unknown key, 2 runs at a time. Returns (exit status, output folder, printed table)."""
+    root = tmp_path_factory.mktemp("sweep")
+    (root / "broken.yaml").write_text("dynamic:\n  no_such_key: 1\n")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        status = sweep.main(tiny_sweep_argv(root))
+    return status, root / "out", printed.getvalue()
+
+
+def read_csv(path: Path) -> list[dict]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def test_csv_has_one_row_per_run_with_the_run_folders_numbers(tiny_sweep):
+    status, output, _ = tiny_sweep
+    assert status == 1  # some runs failed; the sweep itself finished
+    rows = read_csv(output / "sweep.csv")
+    assert [(r["config"], r["repeat"], r["seed"]) for r in rows] == [
+        (c, str(k), str(k)) for c in ("none", "dynamic_box_depth", "broken") for k in (0, 1)]
+    assert {r["sequence"] for r in rows} == {"synthetic_people"}
+    for row in rows[:4]:
+        assert row["status"] == "ok" and row["error"] == ""
+        run_dir = Path(row["run_dir"])
+        summary = json.loads((run_dir / "summary.json").read_text())
+        evaluation = json.loads((run_dir / "evaluation.json").read_text())
+        assert float(row["ate_rmse_m"]) == pytest.approx(evaluation["ate"]["rmse"])
+        assert float(row["rpe_trans_m"]) == pytest.approx(evaluation["rpe_frame"]["translation"]["rmse"])
+        assert float(row["rpe_rot_deg"]) == pytest.approx(evaluation["rpe_frame"]["rotation"]["rmse"])
+        assert (int(row["tracked"]), int(row["frames"])) == (summary["tracked"], FRAMES)
+        assert float(row["median_ms"]) == pytest.approx(summary["timing_ms"]["total"]["median_ms"])
+        assert float(row["ms_extract"]) == pytest.approx(summary["timing_ms"]["extract"]["median_ms"])
+    assert rows[2]["ms_dynamic.box_depth"] and not rows[0]["ms_dynamic.box_depth"]  # per-module columns
+
+
+def test_runs_get_their_seed_and_the_detection_cache(tiny_sweep):
+    _, output, _ = tiny_sweep
+    config = yaml.safe_load((output / "runs" / "synthetic_people__dynamic_box_depth__r1" / "config.yaml").read_text())
+    assert config["seed"] == 1 and config["dynamic"]["cpr"]["seed"] == 1
+    assert config["dynamic"]["methods"] == ["box_depth"]
+    assert Path(config["dynamic"]["detector"]["cache_dir"]) == output.parent / "cache"
+
+
+def test_a_failing_configuration_is_recorded_with_its_message(tiny_sweep):
+    _, output, printed = tiny_sweep
+    failed = [r for r in read_csv(output / "sweep.csv") if r["config"] == "broken"]
+    assert [r["status"] for r in failed] == ["failed", "failed"]
+    assert all(r["error"].startswith("ConfigError:") and "no_such_key" in r["error"] for r in failed)
+    assert all(r["ate_rmse_m"] == "" for r in failed)
+    line = next(line for line in printed.splitlines() if "`broken`" in line)
+    assert "2 (2 failed: ConfigError:" in line and "| – | – |" in line
+
+
+def test_markdown_table_has_the_columns_and_the_medians_of_the_runs(tiny_sweep):
+    _, output, printed = tiny_sweep
+    assert (output / "sweep.md").read_text() == printed
+    lines = printed.splitlines()
+    header = [cell.strip() for cell in lines[0].strip("|").split("|")]
+    assert header == ["configuration", "ATE RMSE median (m)", "min – max", "RPE median (m, ° per frame)",
+                      "frames tracked (worst)", "ms/frame (median)", "vs. none", "runs"]
+    assert len(lines) == 2 + 3
+    rows = read_csv(output / "sweep.csv")
+    for config, line in zip(("none", "dynamic_box_depth"), lines[2:4]):
+        cells = [cell.strip() for cell in line.strip("|").split("|")]
+        runs = [r for r in rows if r["config"] == config]
+        ates = [float(r["ate_rmse_m"]) for r in runs]
+        assert cells[0] == f"`{config}`"
+        assert cells[1] == f"{np.median(ates):.4f}" and cells[2] == f"{min(ates):.4f} – {max(ates):.4f}"
+        assert cells[3].startswith(f"{np.median([float(r['rpe_trans_m']) for r in runs]):.4f}, ")
+        assert cells[4] == f"{min(int(r['tracked']) for r in runs)}/{FRAMES}"
+        assert cells[5] == f"{np.median([float(r['median_ms']) for r in runs]):.1f}"
+        assert cells[7] == "2"
+    assert lines[2].split("|")[7].strip() == "1.0×"
+    json_rows = json.loads((output / "sweep.json").read_text())["runs"]
+    assert len(json_rows) == 6
+
+
+def fake_row(config: str, repeat: int, ate=None, **extra) -> dict:
+    row = {"sequence": "seq", "config": config, "repeat": repeat, "seed": repeat, "status": "ok", "error": "",
+           "ate_rmse_m": ate, "rpe_trans_m": 0.01 * (repeat + 1), "rpe_rot_deg": 0.5 * (repeat + 1),
+           "tracked": 100 - repeat, "frames": 100, "median_ms": 20.0 + repeat}
+    row.update(extra)
+    return row
+
+
+def test_medians_spread_and_ratio_from_per_run_numbers():
+    spec = sweep.SweepSpec(sequences=["seq"], configs=[sweep.ConfigSpec("off"), sweep.ConfigSpec("fused", ("x",))],
+                           baseline="off")
+    rows = [fake_row("off", 0, 0.8), fake_row("off", 1, 0.6), fake_row("off", 2, 1.0),
+            fake_row("fused", 0, 0.03), fake_row("fused", 1, 0.01), fake_row("fused", 2, 0.02),
+            fake_row("fused", 3, status="failed", error="RuntimeError: boom | bang", ate_rmse_m=None)]
+    groups = {g["config"].label: g for g in tables.group_stats(rows, spec)}
+    assert groups["off"]["ate_median"] == pytest.approx(0.8)
+    assert (groups["off"]["ate_min"], groups["off"]["ate_max"]) == (0.6, 1.0)
+    assert groups["fused"]["ate_median"] == pytest.approx(0.02) and groups["fused"]["failed"] == 1
+    assert groups["fused"]["rpe_trans"] == pytest.approx(0.02) and groups["fused"]["median_ms"] == pytest.approx(21.0)
+    assert groups["fused"]["tracked"] == (98, 100)  # the worst of the successful repeats
+    table = sweep.markdown_table(rows, spec).splitlines()
+    assert table[2] == "| `off` | 0.8000 | 0.6000 – 1.0000 | 0.0200, 1.000 | 98/100 | 21.0 | 1.0× | 3 |"
+    assert table[3] == ("| `fused` | 0.0200 | 0.0100 – 0.0300 | 0.0200, 1.000 | 98/100 | 21.0 | 40× | "
+                        "4 (1 failed: RuntimeError: boom \\| bang) |")
+
+
+def test_several_sequences_get_a_sequence_column():
+    spec = sweep.SweepSpec(sequences=["synthetic:a", "synthetic:b"], configs=[sweep.ConfigSpec("off")])
+    sweep.check_spec(spec)  # defaults the baseline to the first configuration
+    rows = [fake_row("off", 0, 0.5), {**fake_row("off", 0, 0.25), "sequence": "other"}]
+    table = sweep.markdown_table(rows, spec).splitlines()
+    assert table[0].startswith("| sequence | configuration |")
+    assert table[2].startswith("| seq | `off` | 0.5000") and table[3].startswith("| other | `off` | 0.2500")
+
+
+def test_collect_row_reports_a_crash_and_a_timeout(tmp_path):
+    job = {"sequence_label": "s", "config": "c", "repeat": 0, "seed": 0, "run_dir": str(tmp_path)}
+    (tmp_path / "run.log").write_text("Fatal Python error: Segmentation fault\n")
+    assert sweep.collect_row(job, -11, 1.0)["error"] == "killed by signal 11"
+    assert sweep.collect_row(job, 3, 1.0)["error"] == "exit status 3: Fatal Python error: Segmentation fault"
+    assert sweep.collect_row(job, None, 5.0, timeout=5)["error"] == "timed out after 5 s"
+    assert sweep.collect_row(job, 0, 1.0)["error"] == "the run wrote no summary.json"
+    assert sweep.collect_row(job, None, 0.0, error="OSError: disk full")["error"] == "OSError: disk full"
+
+
+def test_bonn_ablation_sweep_file_defines_the_readme_ablation():
+    spec = sweep.load_sweep_file(TOOLS / "sweeps" / "bonn_ablation.yaml")
+    repo = TOOLS.parent
+    assert spec.sequences == [str((repo.parent / "shared" / "data" / "rgbd_bonn_crowd_first480").resolve())]
+    assert spec.presets == ["bonn"] and spec.repeats == 3 and spec.baseline == "off"
+    assert {c.label: c.presets for c in spec.configs} == {
+        "off": (), "dynamic_box_prior": ("dynamic_box_prior",), "dynamic_cpr": ("dynamic_cpr",),
+        "dynamic_box_depth": ("dynamic_box_depth",), "dynamic_flow_epipolar": ("dynamic_flow_epipolar",),
+        "dynamic_depth_sdf": ("dynamic_depth_sdf",), "dynamic_all": ("dynamic_all",)}
+    from slam.config import SlamConfig, apply_yaml
+
+    for config in spec.configs:  # every preset exists and loads
+        for preset in spec.presets + list(config.presets):
+            apply_yaml(SlamConfig(), preset)
+
+
+def test_sweep_file_paths_and_command_line_overrides(tmp_path):
+    (tmp_path / "s.yaml").write_text(
+        "sequences: [data/seq, synthetic:people:seed=2]\npresets: [bonn, configs/x.yaml]\n"
+        "configs:\n  plain: null\n  both: {presets: dynamic_all, set: {tracking.match_ratio: 0.8}, description: d}\n"
+        "repeats: 2\n")
+    spec = sweep.load_sweep_file(tmp_path / "s.yaml")
+    assert spec.sequences == [str(sweep.REPO / "data" / "seq"), "synthetic:people:seed=2"]
+    assert spec.presets == ["bonn", str(sweep.REPO / "configs" / "x.yaml")]
+    assert spec.configs[1] == sweep.ConfigSpec("both", ("dynamic_all",), (("tracking.match_ratio", 0.8),), "d")
+    args = sweep.build_parser().parse_args([str(tmp_path / "s.yaml"), "--repeats", "5", "--max-frames", "7",
+                                            "--set", "seed=3", "--baseline", "both"])
+    spec = sweep.spec_from_args(args)
+    assert (spec.repeats, spec.max_frames, spec.baseline, spec.overrides) == (5, 7, "both", {"seed": 3})
+    jobs = sweep.make_jobs(spec, tmp_path)
+    assert len(jobs) == 2 * 2 * 5 and jobs[-1]["presets"] == ["bonn", str(sweep.REPO / "configs" / "x.yaml"),
+                                                               "dynamic_all"]
+    assert jobs[-1]["overrides"] == {"seed": 3, "tracking.match_ratio": 0.8}
+    assert jobs[-1]["run_dir"] == str(tmp_path / "runs" / "synthetic_people_seed=2__both__r4")
+
+
+def test_bad_sweeps_are_refused_with_a_clear_error(tmp_path, capsys):
+    assert sweep.main(["--sequences", str(tmp_path / "missing"), "--configs", "none"]) == 2
+    assert "sequence folder not found" in capsys.readouterr().err
+    assert sweep.main(["--configs", "none"]) == 2
+    assert "nothing to run" in capsys.readouterr().err
+    (tmp_path / "s.yaml").write_text("sequence: [x]\n")
+    assert sweep.main([str(tmp_path / "s.yaml")]) == 2
+    assert "expected a mapping with keys" in capsys.readouterr().err
+    assert sweep.main(["--sequences", "synthetic", "--configs", "none", "--baseline", "other"]) == 2
+    assert "baseline 'other'" in capsys.readouterr().err
+
+
+def test_ablation_alias_translates_to_sweep_arguments():
+    ablation = load_tool("ablation")
+    assert ablation.sweep_arguments(["--repeats", "3"])[:3] == [str(TOOLS / "sweeps" / "bonn_ablation.yaml"),
+                                                                "--repeats", "3"]
+    args = ablation.sweep_arguments(["SEQ", "--configs", "none", "dynamic_all", "--set", "a=1", "--jobs", "1"])
+    assert args[:6] == ["--sequences", "SEQ", "--configs", "none", "dynamic_all", "--set"]
+    assert args[6:10] == ["a=1", "--jobs", "1", "--output"]
+
+
+def test_resume_keeps_finished_runs_and_reruns_the_failed_ones(tiny_sweep):
+    """Last: it reruns the module's sweep in place."""
+    _, output, _ = tiny_sweep
+    marker = output / "runs" / "synthetic_people__none__r0" / "kept"
+    marker.write_text("")
+    failed_marker = output / "runs" / "synthetic_people__broken__r0" / "kept"
+    failed_marker.write_text("")
+    before = read_csv(output / "sweep.csv")
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert sweep.main(tiny_sweep_argv(output.parent) + ["--resume"]) == 1
+    after = read_csv(output / "sweep.csv")
+    assert marker.exists()  # not run again
+    assert [r["ate_rmse_m"] for r in after] == [r["ate_rmse_m"] for r in before]
+    assert [r["status"] for r in after] == [r["status"] for r in before]
+    assert not failed_marker.exists()  # failed runs are run again
