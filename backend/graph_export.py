@@ -272,3 +272,11 @@ def graph_edges_from_mapper(mapper, min_shared: int = 15, odometry_sigma_t: Opti
         edges.append(GraphEdge(i, j, T_cw[i] @ T_wc[j], information_from_sigmas(cov_t, cov_r, n / min_shared),
                                "covisibility"))
     return edges
+
+
+def loop_edges(loops, sigma_t: float, sigma_r_deg: float) -> list[GraphEdge]:
+    """Live loop factors as edges (kind "loop"): the measured ``T_match_query``, not the estimate, with
+    the loop factor's information. Loops removed as inconsistent are left out."""
+    info = information_from_sigmas(sigma_t, sigma_r_deg)
+    return [GraphEdge(int(e.match_kf), int(e.query_kf), np.asarray(e.T_match_query, float), info.copy(), "loop")
+            for e in loops if e.active]

@@ -74,8 +74,10 @@ class LoopCloser:
 
     def process_keyframe(self, kf_id: int) -> Optional[LoopEdge]:
         """Detect and close a loop for a newly inserted keyframe (which is indexed either way)."""
-        if not self.cfg.enabled:
+        last = max((e.query_kf for e in self.loops if e.source == "detected"), default=None)
+        if not self.cfg.enabled or (last is not None and kf_id < last + self.cfg.min_keyframes_between):
             self.detector.index_keyframe(self.mapper.map, kf_id)
+            self.detector.reset_consistency()
             return None
         candidate = self.detector.process_keyframe(self.mapper.map, kf_id)
         edge = self.close(candidate) if candidate is not None else None

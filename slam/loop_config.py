@@ -20,6 +20,9 @@ class LoopConfig:
     exclude_recent: int = 5
     min_score_ratio: float = 0.75
     max_candidates: int = 10
+    # After a loop closes, the next keyframes are only indexed (ORB-SLAM waits 10): a loop just fused
+    # this place, and re-closing it at every keyframe would cost an optimisation each time.
+    min_keyframes_between: int = 10
     # Geometric verification: PnP-RANSAC inliers on static features, with a relative depth check.
     min_inliers: int = 30
     reprojection_error: float = 3.0
@@ -44,7 +47,7 @@ POSITIVE = {f"loop.{name}" for name in (
     "min_covisible_shared", "consistency", "min_inliers", "reprojection_error", "depth_tolerance", "sigma_t",
     "sigma_r_deg", "kernel_k", "max_residual_t", "max_residual_r_deg", "max_candidates", "reloc_candidates",
     "reloc_min_inliers")}
-NON_NEGATIVE = {"loop.exclude_recent", "loop.extra_updates"}
+NON_NEGATIVE = {"loop.exclude_recent", "loop.extra_updates", "loop.min_keyframes_between"}
 UNIT_INTERVAL = {"loop.min_score_ratio"}
 
 

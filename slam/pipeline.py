@@ -70,6 +70,8 @@ class RunSummary:
     interrupted: bool = False
     dynamic_methods: list[str] = field(default_factory=list)
     dynamic_flagged: dict[str, dict[str, float]] = field(default_factory=dict)  # per method and fused
+    loops: list[dict[str, Any]] = field(default_factory=list)   # every loop factor added, with timestamps
+    place_recognition: dict[str, Any] = field(default_factory=dict)  # loop / relocalization counts and ms
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -169,6 +171,7 @@ class Pipeline:
         if stats is not None:
             self.summary.dynamic_flagged = stats.summary()
             self._write_dynamic_counts(stats.flagged)
+        self.summary.loops, self.summary.place_recognition = self.system.place_recognition_report()
         self.summary.skipped_files = [f"{p}: {why}" for p, why in getattr(self.dataset, "skipped", [])]
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
         from slam.trajectory_formats import export_formats
@@ -177,13 +180,14 @@ class Pipeline:
 
     def _write_graph(self) -> None:
         """graph.g2o and graph.json: the optimised keyframe graph (odometry + covisibility edges)."""
-        from backend.graph_export import export_g2o, export_json, graph_edges_from_mapper, mapper_keyframes
+        from backend.graph_export import export_g2o, export_json, graph_edges_from_mapper, loop_edges, mapper_keyframes
 
         mapper = self.system.mapper
         if mapper.map.num_keyframes == 0 or self.system.localization_only:
             return
         ids, stamps, poses = mapper_keyframes(mapper)
         edges = graph_edges_from_mapper(mapper, self.config.backend.covisibility_min_shared)
+        edges += loop_edges(self.system.loop_closer.loops, self.config.loop.sigma_t, self.config.loop.sigma_r_deg)
         export_g2o(self.output_dir / "graph.g2o", ids, poses, edges)
         export_json(self.output_dir / "graph.json", ids, stamps, poses, edges)
 

@@ -187,6 +187,23 @@ class System:
         """HxW float dynamic probability per pixel of the last frame (None with dynamic handling off)."""
         return getattr(self.dynamic_filter, "last_mask", None)
 
+    def place_recognition_report(self) -> tuple[list[dict], dict]:
+        """(loops with their keyframes' timestamps, counts and ms per keyframe / per relocalization)."""
+        stamps = [k.timestamp for k in self.mapper.map.keyframes]
+        loops = [{**e.to_dict(), "query_t": stamps[e.query_kf], "match_t": stamps[e.match_kf]}
+                 for e in self.loop_closer.loops]
+
+        def stats(ms: list[float]) -> dict:
+            return {"count": len(ms), "median_ms": float(np.median(ms)) if ms else 0.0,
+                    "mean_ms": float(np.mean(ms)) if ms else 0.0, "max_ms": float(np.max(ms)) if ms else 0.0}
+
+        counts = {"loops_added": len(loops), "loops_active": len(self.loop_closer.active_loops()),
+                  "loop_per_keyframe": stats(self.loop_times_ms),
+                  "relocalization_attempts": self.relocalizer.attempts,
+                  "relocalization_successes": self.relocalizer.successes,
+                  "relocalization_per_attempt": stats(self.reloc_times_ms)}
+        return loops, counts
+
     def save_map(self, path) -> None:
         """Write the map with its keyframe index, vocabulary and loops (``backend.map_io``), atomically."""
         from backend.map_io import camera_info_from_config, save_map
@@ -240,6 +257,7 @@ class System:
         self.tracker.initialize(frame, invert(T_wc), kf.landmark_of_keypoint)
         self._reference_kf, self._last_keyframe_frame = 0, len(self._frames)
         self._frames.append(_FrameRecord(frame.timestamp, 0, np.eye(4)))
+        self._close_loops(0)   # indexes the first keyframe
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, True, len(frame), len(frame))
 
     def _relocalize(self, frame: FeatureFrame, source) -> Optional[TrackingResult]:

@@ -4,6 +4,7 @@
     python tools/benchmark.py                                   # fr1/rpy (400 frames) from ../shared/data
     python tools/benchmark.py SEQ_DIR [SEQ_DIR ...] --repeats 3
     python tools/benchmark.py --peer ../orb-venv/bin/python     # also run ORB-SLAM3 in that venv
+    python tools/benchmark.py --blackout 185:30                 # blank 30 frames: relocalization timing
 
 Prints a Markdown table (ATE RMSE; median ms per frame per module) and writes it with the raw
 numbers to ``--output`` (benchmark.md, benchmark.json). Targets are reported, not asserted, so a
@@ -28,13 +29,19 @@ MODULES = ("extract", "dynamic", "tracking", "mapping", "backend", "total")
 TARGETS = {"ate_rmse_m": 0.030, "median_total_ms": 60.0}
 
 
-def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides: list[str]) -> dict:
+def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides: list[str],
+                blackout: str = "") -> dict:
     from slam.cli import _parse_overrides, resolve_run_config
     from slam.datasets import TumDataset
     from slam.pipeline import Pipeline
 
     config = resolve_run_config(sequence, config_files, _parse_overrides(overrides))
     dataset = TumDataset(sequence, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
+    if blackout:
+        from slam.datasets.faults import Blackout
+
+        start, count = (int(x) for x in blackout.split(":"))
+        dataset = Blackout(dataset, start, count)
     pipeline = Pipeline(dataset, config, output)
     summary = pipeline.run()
     backend_ms = pipeline.system.timer.per_frame("backend")
@@ -45,7 +52,19 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
         "median_ms": {m: summary.timing_ms.get(m, {}).get("median_ms", 0.0) for m in MODULES},
         "mean_total_ms": summary.timing_ms.get("total", {}).get("mean_ms", 0.0),
         "backend_ms_per_keyframe": float(np.median(keyframe_ms)) if len(keyframe_ms) else 0.0,
+        **_place_recognition(summary.place_recognition),
     }
+
+
+def _place_recognition(report: dict) -> dict:
+    """Loop closing per keyframe (detection every keyframe; closures are the max) and relocalization
+    per attempt (one per frame while lost)."""
+    loop, reloc = report["loop_per_keyframe"], report["relocalization_per_attempt"]
+    return {"loops": f"{report['loops_active']}/{report['loops_added']}",
+            "loop_ms_per_keyframe": loop["median_ms"], "loop_ms_max": loop["max_ms"],
+            "relocalizations": f"{report['relocalization_successes']}/{report['relocalization_attempts']}",
+            "reloc_ms_per_attempt": reloc["median_ms"] if reloc["count"] else None,
+            "reloc_ms_max": reloc["max_ms"] if reloc["count"] else None}
 
 
 def run_peer(python: str, sequence: Path, workdir: Path) -> dict:
@@ -68,14 +87,18 @@ def run_peer(python: str, sequence: Path, workdir: Path) -> dict:
 
 def markdown_table(rows: list[dict]) -> str:
     head = "| system | sequence | frames tracked | keyframes | ATE RMSE (m) | " + \
-           " | ".join(f"{m} ms" for m in MODULES) + " | mean total ms | backend ms/keyframe |"
-    lines = [head, "|" + "---|" * (7 + len(MODULES))]
+           " | ".join(f"{m} ms" for m in MODULES) + " | mean total ms | backend ms/keyframe |" + \
+           " loops active/added | loop ms/keyframe (median, max) | relocalized/attempts | reloc ms/attempt (median, max) |"
+    lines = [head, "|" + "---|" * (11 + len(MODULES))]
     for r in rows:
         ms = " | ".join(f"{r['median_ms'][m]:.1f}" if m in r["median_ms"] else "–" for m in MODULES)
         frames = f"{r['tracked']}/{r['frames']}" if "frames" in r else str(r.get("tracked", ""))
         lines.append(f"| {r['system']} | {r['sequence']} | {frames} | {r.get('keyframes', '–')} | "
                      f"{r['ate_rmse_m']:.4f} | {ms} | {_num(r.get('mean_total_ms'))} | "
-                     f"{_num(r.get('backend_ms_per_keyframe'))} |")
+                     f"{_num(r.get('backend_ms_per_keyframe'))} | {r.get('loops', '–')} | "
+                     f"{_num(r.get('loop_ms_per_keyframe'))}, {_num(r.get('loop_ms_max'))} | "
+                     f"{r.get('relocalizations', '–')} | {_num(r.get('reloc_ms_per_attempt'))}, "
+                     f"{_num(r.get('reloc_ms_max'))} |")
     return "\n".join(lines)
 
 
@@ -88,7 +111,7 @@ def aggregate(runs: list[dict]) -> dict:
     out = dict(runs[0])
     out["ate_rmse_m"] = float(np.median([r["ate_rmse_m"] for r in runs]))
     out["median_ms"] = {m: float(np.median([r["median_ms"].get(m, 0.0) for r in runs])) for m in runs[0]["median_ms"]}
-    for key in ("mean_total_ms", "backend_ms_per_keyframe"):
+    for key in ("mean_total_ms", "backend_ms_per_keyframe", "loop_ms_per_keyframe", "loop_ms_max"):
         out[key] = float(np.median([r[key] for r in runs]))
     out["repeats"] = len(runs)
     return out
@@ -103,6 +126,8 @@ def main(argv=None) -> int:
     parser.add_argument("--peer", metavar="PYTHON", help="python of a venv with pyorbslam3, to run ORB-SLAM3 too")
     parser.add_argument("--output", "-o", type=Path, default=REPO / "results" / "benchmark")
     parser.add_argument("--check", action="store_true", help="exit 1 if a target is missed")
+    parser.add_argument("--blackout", metavar="START:COUNT", default="",
+                        help="blank COUNT frames from START (times relocalization)")
     args = parser.parse_args(argv)
     missing = [s for s in args.sequences if not s.is_dir()]
     if missing:
@@ -111,7 +136,8 @@ def main(argv=None) -> int:
     args.output.mkdir(parents=True, exist_ok=True)
     rows = []
     for seq in args.sequences:
-        runs = [run_dynslam(seq, args.output / f"{seq.name}_run{i}", args.config, args.set) for i in range(args.repeats)]
+        runs = [run_dynslam(seq, args.output / f"{seq.name}_run{i}", args.config, args.set, args.blackout)
+                for i in range(args.repeats)]
         rows.append(aggregate(runs))
         if args.peer:
             with tempfile.TemporaryDirectory() as tmp:

@@ -1,0 +1,162 @@
+"""Loop closing in the running System: a room walked three times with injected drift.
+
+The camera walks an ellipse (1.0 x 0.8 m) in the generated 6 x 5 m room looking outwards, 120 frames
+per lap, three laps. The renderer is exact, so on its own the system hardly drifts; drift is
+injected the way it arises in practice: during the first lap (from frame 30), every keyframe's *new*
+landmarks are measured 0.3 degrees rotated about the camera (their creating observation is
+rewritten, so the graph keeps the error, as it keeps a biased measurement). Each keyframe inherits
+the previous error and adds its own, so the map's heading walks off through the lap; with loop
+closing off, the later laps continue from the drifted end of the first.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from backend.local_mapping import LocalMapper
+from slam.config import load_config
+from slam.datasets import SyntheticSequence
+from slam.datasets.synthetic import look_rotation
+from slam.evaluation import ate
+from slam.system import System
+
+PERIOD = 120
+LAPS = 3
+DRIFT_DEG = 0.3
+DRIFT_FROM, DRIFT_UNTIL = 30, PERIOD
+
+
+def lap_pose(i: int) -> np.ndarray:
+    a = 2 * np.pi * i / PERIOD
+    T = np.eye(4)
+    T[:3, :3] = look_rotation(a, -0.05, 0.0)
+    T[:3, 3] = [1.0 * np.cos(a), 0.8 * np.sin(a), 1.4]
+    return T
+
+
+def _inject_drift(monkeypatch) -> None:
+    R = Rotation.from_euler("y", DRIFT_DEG, degrees=True).as_matrix()   # camera y = vertical: a heading error
+    create = LocalMapper._create_landmarks
+
+    def drifting(self, kf_id, frame, T_wc, lm_of_kp, colors=None):
+        first = len(self.map.landmarks)
+        n = create(self, kf_id, frame, T_wc, lm_of_kp, colors)
+        if not DRIFT_FROM <= frame.index < DRIFT_UNTIL:
+            return n
+        lm, obs, cam = self.map.landmarks, self.map.observations, self.camera
+        new = np.arange(first, len(lm))
+        lm.local_xyz[new] = lm.local_xyz[new] @ R.T
+        self.map.refresh_anchored()
+        rows = np.flatnonzero((obs.kf == kf_id) & (obs.lm >= first))
+        p = lm.local_xyz[obs.lm[rows]]
+        obs.uv[rows] = np.c_[cam.fx * p[:, 0] / p[:, 2] + cam.cx, cam.fy * p[:, 1] / p[:, 2] + cam.cy]
+        obs.depth[rows] = p[:, 2]
+        return n
+
+    monkeypatch.setattr(LocalMapper, "_create_landmarks", drifting)
+
+
+def _config(loop: bool):
+    seq = SyntheticSequence(n_frames=2)
+    fx, fy, cx, cy = seq.intrinsics
+    return load_config(overrides={"camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
+                                  "camera.width": seq.width, "camera.height": seq.height,
+                                  "camera.distortion": [0.0] * 5, "loop.enabled": loop})
+
+
+def _walk(loop: bool) -> tuple[System, np.ndarray]:
+    seq = SyntheticSequence(n_frames=2)
+    system = System(_config(loop))
+    gt = []
+    for i in range(LAPS * PERIOD):
+        T = lap_pose(i)
+        rgb, depth = seq.render(T, 0.0)
+        system.process(rgb, depth, i / 30.0, i)
+        gt.append(T)
+    return system, np.array(gt)
+
+
+@pytest.fixture(scope="module")
+def walks():
+    with pytest.MonkeyPatch.context() as mp:
+        _inject_drift(mp)
+        on, gt = _walk(True)
+        off, _ = _walk(False)
+    return on, off, gt
+
+
+def _ate(system: System, gt: np.ndarray) -> float:
+    stamps, poses, tracked = system.trajectory()
+    assert tracked.all()
+    return ate(stamps, gt, stamps, poses).rmse
+
+
+def test_loop_found_and_ate_at_least_halved(walks):
+    on, off, gt = walks
+    detected = [e for e in on.loop_closer.loops if e.source == "detected"]
+    assert detected and any(e.active for e in detected)
+    assert not off.loop_closer.loops
+    # The first closure joins the end of lap 1 to its start, and every loop agrees with ground truth.
+    frame_of = [kf.frame_index for kf in on.mapper.map.keyframes]
+    assert PERIOD - 10 <= frame_of[detected[0].query_kf] <= PERIOD + 30
+    for e in detected:
+        T_true = np.linalg.solve(gt[frame_of[e.match_kf]], gt[frame_of[e.query_kf]])
+        E = np.linalg.solve(T_true, e.T_match_query)
+        assert np.linalg.norm(E[:3, 3]) < 0.1
+    ate_on, ate_off = _ate(on, gt), _ate(off, gt)
+    assert ate_off > 0.015, "the injected drift should be visible with loop closing off"
+    assert ate_on <= 0.5 * ate_off, (ate_on, ate_off)
+
+
+def test_fused_landmarks_link_both_sides_of_the_loop(walks):
+    on, _, _ = walks
+    edge = next(e for e in on.loop_closer.loops if e.source == "detected")
+    slam_map = on.mapper.map
+    assert edge.fused_landmarks >= 30
+    query_lms = slam_map.keyframes[edge.query_kf].landmark_of_keypoint
+    # The query keyframe now observes landmarks created on the first pass, through graph factors.
+    old = query_lms[(query_lms >= 0)]
+    old = old[slam_map.landmarks.anchor_kf[old] <= edge.match_kf + 5]
+    assert len(old) >= 30
+    obs = slam_map.observations
+    rows = np.flatnonzero((obs.kf == edge.query_kf) & np.isin(obs.lm, old))
+    assert obs.in_graph[rows].all() and (obs.factor[rows] >= 0).all()
+    # Duplicates were retired: no keyframe table points at a bad landmark that was merged away.
+    for kf in slam_map.keyframes:
+        ids = kf.landmark_of_keypoint[kf.landmark_of_keypoint >= 0]
+        merged = slam_map.landmarks.bad[ids] & (slam_map.landmarks.n_obs[ids] == 0)
+        assert not merged.any()
+
+
+def test_wrong_loop_is_removed_and_moves_nothing(walks):
+    on, _, gt = walks
+    before = on.trajectory()[1].copy()
+    n_kf = on.mapper.map.num_keyframes
+    # A loop between a keyframe of lap 1 and the last one, 0.5 m and 20 degrees off the truth.
+    frame_of = [kf.frame_index for kf in on.mapper.map.keyframes]
+    a, b = 5, n_kf - 1
+    T_true = np.linalg.solve(gt[frame_of[a]], gt[frame_of[b]])
+    wrong = np.eye(4)
+    wrong[:3, :3] = Rotation.from_euler("z", 20, degrees=True).as_matrix()
+    wrong[:3, 3] = [0.5, 0.0, 0.0]
+    edge = on.loop_closer.add_constraint(a, b, T_true @ wrong)
+    after = on.trajectory()[1]
+    assert not edge.active, "the contradicted loop should have been removed"
+    assert edge.residual_t > on.config.loop.max_residual_t
+    moved = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1)
+    assert moved.max() < 0.01, moved.max()
+
+
+def test_loop_edges_are_exported_with_the_graph(walks, tmp_path):
+    from backend.graph_export import export_g2o, graph_edges_from_mapper, loop_edges, mapper_keyframes
+    import gtsam
+
+    on, _, _ = walks
+    edges = graph_edges_from_mapper(on.mapper) + loop_edges(on.loop_closer.loops, 0.02, 1.0)
+    ids, _, poses = mapper_keyframes(on.mapper)
+    export_g2o(tmp_path / "g.g2o", ids, poses, edges)
+    graph, initial = gtsam.readG2o(str(tmp_path / "g.g2o"), True)
+    active = [e for e in on.loop_closer.loops if e.active]
+    assert sum(e.kind == "loop" for e in edges) == len(active) > 0
+    assert graph.size() == len(edges) and initial.size() == len(ids)
