@@ -1,4 +1,4 @@
-"""``dynslam`` command line: run, demo, eval, config.
+"""``dynslam`` command line: run, demo, eval, export-trajectory, export, vocabulary, download, config.
 
 The CLI only parses arguments, resolves the config and calls the library; heavy imports happen
 inside the commands so ``dynslam --help`` stays instant. Expected failures (bad path, bad config,
@@ -230,19 +230,18 @@ def cmd_config(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="dynslam", description="RGB-D SLAM for dynamic scenes")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    sub = parser.add_subparsers(dest="command", required=True)
+def _config_options(p) -> None:
+    p.add_argument("--config", "-c", action="append", default=[],
+                   help="preset name (tum_fr1, tum_fr2, tum_fr3, bonn) or YAML file; repeatable")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one config value, e.g. --set tracking.match_ratio=0.8")
 
-    def config_options(p):
-        p.add_argument("--config", "-c", action="append", default=[],
-                       help="preset name (tum_fr1, tum_fr2, tum_fr3, bonn) or YAML file; repeatable")
-        p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                       help="override one config value, e.g. --set tracking.match_ratio=0.8")
 
-    run = sub.add_parser("run", help="run SLAM on a TUM/Bonn-layout folder")
-    run.add_argument("dataset", help="folder with rgb.txt, depth.txt (and groundtruth.txt)")
+def _slam_parsers(sub) -> None:
+    """run and demo: the commands that run SLAM."""
+    run = sub.add_parser("run", help="run SLAM on a TUM/Bonn folder, a ROS 1/2 bag or an image folder")
+    run.add_argument("dataset", help="TUM/Bonn folder (rgb.txt, depth.txt), ROS bag (.bag file or ROS 2 bag "
+                                     "folder), or a folder with color/, depth/ and intrinsics.yaml")
     run.add_argument("--output", "-o", help="results folder (default results/<name>_<time>)")
     run.add_argument("--max-frames", type=int, help="stop after this many frames")
     run.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
@@ -251,7 +250,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--save-map", metavar="PATH", help="save the final map to PATH (.npz, written atomically)")
     run.add_argument("--load-map", metavar="PATH",
                      help="localisation only: track against the map saved at PATH, which stays unchanged")
-    config_options(run)
+    _config_options(run)
     run.set_defaults(func=cmd_run)
 
     demo = sub.add_parser("demo", help="generate a synthetic RGB-D room and run SLAM on it")
@@ -259,9 +258,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--output", "-o")
     demo.add_argument("--quiet", "-q", action="store_true")
-    config_options(demo)
+    _config_options(demo)
     demo.set_defaults(func=cmd_demo)
 
+
+def _result_parsers(sub) -> None:
+    """eval, export-trajectory and export: working on finished runs."""
     ev = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth")
     ev.add_argument("groundtruth")
     ev.add_argument("estimate")
@@ -280,6 +282,24 @@ def build_parser() -> argparse.ArgumentParser:
     which.add_argument("--keyframes", action="store_true", help="the optimised keyframes (keyframes.txt)")
     xt.set_defaults(func=cmd_export_trajectory)
 
+    exp = sub.add_parser("export", help="sparse and dense (TSDF) maps of a finished run")
+    exp.add_argument("results", nargs="?", help="results folder of a run (or give --map)")
+    exp.add_argument("--map", metavar="FILE", help="a saved map (.npz) instead of a results folder")
+    exp.add_argument("--dataset", metavar="PATH", help="read keyframe images from this TUM/Bonn folder")
+    exp.add_argument("--sparse", action="store_true", help="only the landmark point cloud (default: both)")
+    exp.add_argument("--dense", action="store_true", help="only the TSDF mesh and point cloud (default: both)")
+    exp.add_argument("--by-dynamic", action="store_true",
+                     help="colour landmarks by dynamic evidence (map_sparse_dynamic.ply) instead of the image")
+    exp.add_argument("--voxel", type=float, metavar="M", help="TSDF voxel size in metres (truncation 4 voxels)")
+    exp.add_argument("--no-masks", action="store_true", help="fuse dynamic pixels too (for comparison)")
+    exp.add_argument("--out", metavar="DIR", help="output folder (default: the results / map folder)")
+    exp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                     help="override an export setting, e.g. --set export.depth_max=3.0")
+    exp.set_defaults(func=cmd_export)
+
+
+def _tool_parsers(sub) -> None:
+    """vocabulary, download and config."""
     voc = sub.add_parser("vocabulary", help="build a place-recognition vocabulary from images")
     voc.add_argument("images", nargs="+", help="folders searched recursively for PNG/JPEG images")
     voc.add_argument("--output", "-o", required=True, help="vocabulary file (.npz)")
@@ -299,24 +319,18 @@ def build_parser() -> argparse.ArgumentParser:
     dl.add_argument("--keep-archive", action="store_true", help="keep the archive after unpacking")
     dl.set_defaults(func=cmd_download)
 
-    exp = sub.add_parser("export", help="sparse and dense (TSDF) maps of a finished run")
-    exp.add_argument("results", nargs="?", help="results folder of a run (or give --map)")
-    exp.add_argument("--map", metavar="FILE", help="a saved map (.npz) instead of a results folder")
-    exp.add_argument("--dataset", metavar="PATH", help="read keyframe images from this TUM/Bonn folder")
-    exp.add_argument("--sparse", action="store_true", help="only the landmark point cloud (default: both)")
-    exp.add_argument("--dense", action="store_true", help="only the TSDF mesh and point cloud (default: both)")
-    exp.add_argument("--by-dynamic", action="store_true",
-                     help="colour landmarks by dynamic evidence (map_sparse_dynamic.ply) instead of the image")
-    exp.add_argument("--voxel", type=float, metavar="M", help="TSDF voxel size in metres (truncation 4 voxels)")
-    exp.add_argument("--no-masks", action="store_true", help="fuse dynamic pixels too (for comparison)")
-    exp.add_argument("--out", metavar="DIR", help="output folder (default: the results / map folder)")
-    exp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                     help="override an export setting, e.g. --set export.depth_max=3.0")
-    exp.set_defaults(func=cmd_export)
-
     cfg = sub.add_parser("config", help="print the default (or resolved) configuration as YAML")
-    config_options(cfg)
+    _config_options(cfg)
     cfg.set_defaults(func=cmd_config)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dynslam", description="RGB-D SLAM for dynamic scenes")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _slam_parsers(sub)
+    _result_parsers(sub)
+    _tool_parsers(sub)
     return parser
 
 

@@ -1,12 +1,11 @@
-"""Loop closing in the running System: a room walked three times with injected drift.
+"""Loop closing in the running System: a room walked twice with injected drift.
 
-The camera walks an ellipse (1.0 x 0.8 m) in the generated 6 x 5 m room looking outwards, 120 frames
-per lap, three laps. The renderer is exact, so on its own the system hardly drifts; drift is
-injected the way it arises in practice: during the first lap (from frame 30), every keyframe's *new*
-landmarks are measured 0.3 degrees rotated about the camera (their creating observation is
-rewritten, so the graph keeps the error, as it keeps a biased measurement). Each keyframe inherits
-the previous error and adds its own, so the map's heading walks off through the lap; with loop
-closing off, the later laps continue from the drifted end of the first.
+The camera walks an ellipse (1.0 x 0.8 m) in the generated 6 x 5 m room looking outwards, 150 frames
+per lap, two laps. The renderer is exact, so on its own the system hardly drifts; drift is injected
+the way it arises in practice: from frame 30 on, every keyframe's *new* landmarks are measured 0.3
+degrees rotated about the camera (their creating observation is rewritten, so the graph keeps the
+error, as it keeps a biased measurement). Each keyframe inherits the previous error and adds its
+own, so the map's heading walks off; with loop closing off, nothing ever pulls it back.
 """
 from __future__ import annotations
 
@@ -21,10 +20,10 @@ from slam.datasets.synthetic import look_rotation
 from slam.evaluation import ate
 from slam.system import System
 
-PERIOD = 120
-LAPS = 3
+PERIOD = 150
+LAPS = 2
 DRIFT_DEG = 0.3
-DRIFT_FROM, DRIFT_UNTIL = 30, PERIOD
+DRIFT_FROM, DRIFT_UNTIL = 30, LAPS * PERIOD
 
 
 def lap_pose(i: int) -> np.ndarray:
@@ -97,7 +96,7 @@ def test_loop_found_and_ate_at_least_halved(walks):
     detected = [e for e in on.loop_closer.loops if e.source == "detected"]
     assert detected and any(e.active for e in detected)
     assert not off.loop_closer.loops
-    # The first closure joins the end of lap 1 to its start, and every loop agrees with ground truth.
+    # The first closure joins the end of lap 1 to its start; every loop agrees with ground truth.
     frame_of = [kf.frame_index for kf in on.mapper.map.keyframes]
     assert PERIOD - 10 <= frame_of[detected[0].query_kf] <= PERIOD + 30
     for e in detected:
@@ -105,7 +104,8 @@ def test_loop_found_and_ate_at_least_halved(walks):
         E = np.linalg.solve(T_true, e.T_match_query)
         assert np.linalg.norm(E[:3, 3]) < 0.1
     ate_on, ate_off = _ate(on, gt), _ate(off, gt)
-    assert ate_off > 0.015, "the injected drift should be visible with loop closing off"
+    print(f"ATE with loop closing on {ate_on:.4f} m, off {ate_off:.4f} m")
+    assert ate_off > 0.025, "the injected drift should be visible with loop closing off"
     assert ate_on <= 0.5 * ate_off, (ate_on, ate_off)
 
 
