@@ -51,6 +51,11 @@ class BackendParams:
     huber_k: float = 2.8
     max_dynamic_inflation: float = 100.0
     prior_sigma: float = 1e-4
+    # A very weak prior (metres) at each landmark's first estimate. It never competes with real
+    # observations (1 px at 3 m is ~6 mm), but keeps the system solvable when every observation of a
+    # landmark stops informing it: a stereo factor whose point falls behind its camera (e.g. after
+    # a loop correction moves keyframes) has zero Jacobians, and iSAM2 throws IndeterminantLinearSystem.
+    landmark_prior_sigma: float = 100.0
 
     @classmethod
     def from_config(cls, cfg) -> "BackendParams":
@@ -101,7 +106,12 @@ class FactorGraphBackend:
     def add_landmark(self, lm_id: int, xyz_guess: np.ndarray) -> None:
         if lm_id in self._landmarks:
             raise BackendError(f"landmark {lm_id} already exists")
-        self._pending_values.insert(L(lm_id), gtsam.Point3(*np.asarray(xyz_guess, float)))
+        point = gtsam.Point3(*np.asarray(xyz_guess, float))
+        self._pending_values.insert(L(lm_id), point)
+        if self.params.landmark_prior_sigma > 0:
+            noise = self._noise_cache.setdefault(
+                ("landmark_prior",), gtsam.noiseModel.Isotropic.Sigma(3, self.params.landmark_prior_sigma))
+            self._add_factor(gtsam.PriorFactorPoint3(L(lm_id), point, noise))
         self._landmarks.add(lm_id)
 
     def has_keyframe(self, kf_id: int) -> bool:

@@ -13,7 +13,8 @@ uses seed k) and max_frames; command-line options override it. Each run is this 
 running ``slam.pipeline.Pipeline`` into ``OUTPUT/runs/<sequence>__<config>__r<k>/`` (plus ``run.log``);
 the tables come from each folder's ``summary.json`` / ``evaluation.json``. ``sweep.csv`` (a row per
 run), ``sweep.md`` (a row per sequence × configuration) and ``sweep.json`` are rewritten atomically
-after every finished run, so a long sweep's partial table can be read while it runs.
+after every finished run, so a long sweep's partial table can be read while it runs; ``--resume``
+keeps the finished runs of an identical earlier sweep (each run folder keeps its ``job.json``).
 """
 from __future__ import annotations
 
@@ -115,7 +116,8 @@ def load_sweep_file(path: Path) -> SweepSpec:
         configs=[config_from_entry(k, v) for k, v in configs.items()],
         presets=[_resolve_path(str(p)) for p in data.get("presets") or []],
         overrides=dict(data.get("set") or {}), baseline=data.get("baseline"), repeats=int(data.get("repeats", 1)),
-        max_frames=data.get("max_frames"), detection_cache=data.get("detection_cache"))
+        max_frames=data.get("max_frames"),
+        detection_cache=str(REPO / Path(data["detection_cache"]).expanduser()) if data.get("detection_cache") else None)
 
 
 def sequence_label(sequence: str) -> str:
