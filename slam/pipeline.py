@@ -80,7 +80,9 @@ class RunSummary:
 class Pipeline:
     def __init__(self, dataset: RGBDDataset, config: SlamConfig, output_dir: Path | str,
                  max_frames: Optional[int] = None, progress: Optional[Callable[[FrameOutput, float], None]] = None,
-                 save_map: Optional[Path | str] = None, prior_map=None):
+                 save_map: Optional[Path | str] = None, prior_map=None, detector=None):
+        """``detector``: a ``frontend.detector.Detector`` instead of the configured ONNX model (e.g.
+        ground-truth boxes of a generated sequence)."""
         self.dataset = dataset
         self.config = config
         self.output_dir = Path(output_dir)
@@ -88,10 +90,10 @@ class Pipeline:
         self.progress = progress
         self.save_map_path = Path(save_map) if save_map is not None else None
         if prior_map is None:
-            self.system = System(config, sequence_name=getattr(dataset, "name", ""))
+            self.system = System(config, sequence_name=getattr(dataset, "name", ""), detector=detector)
         else:  # a SlamMap, or a backend.map_io.LoadedMap that also brings its vocabulary and words
             places = getattr(prior_map, "places", None)
-            self.system = System(config, sequence_name=getattr(dataset, "name", ""),
+            self.system = System(config, sequence_name=getattr(dataset, "name", ""), detector=detector,
                                  prior_map=getattr(prior_map, "slam_map", prior_map), localization_only=True,
                                  vocabulary=places.vocabulary if places else None,
                                  prior_words=places.bows if places else None)

@@ -126,7 +126,8 @@ def test_noise_free_stereo_recovers_exact_poses_and_landmarks(scene):
     t_err, r_err = pose_errors(graph, poses)
     assert t_err < 1e-4 and r_err < 1e-2
     assert landmark_errors(graph, points).max() < 1e-4
-    assert graph.num_factors == 1 + N_KF * N_PTS  # the gauge prior plus every observation
+    # The gauge prior, every observation and one weak prior per landmark.
+    assert graph.num_factors == 1 + N_KF * N_PTS + N_PTS
     np.testing.assert_allclose(graph.keyframe_pose(3), poses[3], atol=1e-4)
 
 

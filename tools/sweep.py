@@ -19,7 +19,6 @@ keeps the finished runs of an identical earlier sweep (each run folder keeps its
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import re
@@ -191,19 +190,13 @@ def seeded(config, seed: int):
 
 
 def oracle_pipeline(sequence, config, run_dir: str, max_frames: Optional[int]):
-    """A Pipeline whose System sees the generated movers' true boxes (YOLOX does not detect the synthetic
-    people). Pipeline builds its System from the config alone (it takes no detector), so while it is
-    constructed, in this one-run child process, its ``System`` is given the oracle as its detector."""
-    import slam.pipeline as pipeline_module
+    """A Pipeline whose System sees the generated movers' true boxes (YOLOX does not detect the
+    synthetic people)."""
     from frontend.dynamic.oracle import synthetic_oracle
+    from slam.pipeline import Pipeline
 
-    system_class = pipeline_module.System
-    pipeline_module.System = functools.partial(system_class,
-                                               detector=synthetic_oracle(sequence, margin_px=ORACLE_MARGIN_PX))
-    try:
-        return pipeline_module.Pipeline(sequence, config, run_dir, max_frames)
-    finally:
-        pipeline_module.System = system_class
+    return Pipeline(sequence, config, run_dir, max_frames,
+                    detector=synthetic_oracle(sequence, margin_px=ORACLE_MARGIN_PX))
 
 
 def run_one(job: dict) -> int:
