@@ -9,12 +9,10 @@ A sweep file (YAML; ``tools/sweeps/bonn_ablation.yaml`` documents the keys) list
 or ``synthetic[:MOVERS][:seed=N][:path=P]`` generated with ground-truth boxes as the detector),
 presets for every run, labelled configurations, the baseline of the "vs." column, repeats (repeat k
 uses seed k) and max_frames; command-line options override it. Each run is this script with
-``--run-one`` in its own process (a crash, or a hang that ``--timeout`` kills, fails only that run)
-running ``slam.pipeline.Pipeline`` into ``OUTPUT/runs/<sequence>__<config>__r<k>/`` (plus ``run.log``);
-the tables come from each folder's ``summary.json`` / ``evaluation.json``. ``sweep.csv`` (a row per
-run), ``sweep.md`` (a row per sequence × configuration) and ``sweep.json`` are rewritten atomically
-after every finished run, so a long sweep's partial table can be read while it runs; ``--resume``
-keeps the finished runs of an identical earlier sweep (each run folder keeps its ``job.json``).
+``--run-one`` in its own process (a crash or a ``--timeout`` fails only that run) writing
+``OUTPUT/runs/<sequence>__<config>__r<k>/``; ``sweep.csv`` (per run), ``sweep.md`` (per sequence ×
+configuration) and ``sweep.json`` are rewritten atomically after every run; ``--resume`` keeps the
+finished runs of an identical earlier sweep (each run folder keeps its ``job.json``).
 """
 from __future__ import annotations
 
