@@ -200,6 +200,9 @@ def test_set_without_equals_exits_2(capsys):
 
 # --- demo ----------------------------------------------------------------------------------------------
 
+DEMO40_ATE, DEMO40_ONLINE_ATE = 0.0034, 0.0036   # measured: dynslam demo --frames 40 (final, online)
+
+
 @pytest.fixture(scope="module")
 def demo_run(tmp_path_factory) -> tuple[int, Path]:
     out_dir = tmp_path_factory.mktemp("demo") / "results"
@@ -229,7 +232,7 @@ def test_demo_summary_counts_and_accuracy(demo_run):
     assert summary["keyframes"] >= 2
     report = evaluate_files(out_dir / "groundtruth.txt", out_dir / "trajectory.txt")
     assert report.ate.n_matched == 40
-    assert report.ate.rmse < 0.01
+    assert report.ate.rmse < DEMO40_ATE * 1.15   # the regression margin of every accuracy gate
     assert summary["ate_rmse_m"] == pytest.approx(report.ate.rmse, abs=1e-6)
     evaluation = json.loads((out_dir / "evaluation.json").read_text())
     assert evaluation["ate"]["rmse"] == pytest.approx(report.ate.rmse, abs=1e-6)
@@ -251,7 +254,7 @@ def test_demo_trajectory_files_are_complete_and_sorted(demo_run):
     assert len(keyframes) == summary["keyframes"]
     assert set(float(r[0]) for r in keyframes) <= set(stamps.tolist())
     # the online (causal) poses are good too, not only the optimised ones
-    assert evaluate_files(out_dir / "groundtruth.txt", out_dir / "trajectory_online.txt").ate.rmse < 0.02
+    assert evaluate_files(out_dir / "groundtruth.txt", out_dir / "trajectory_online.txt").ate.rmse < DEMO40_ONLINE_ATE * 1.15
 
 
 # --- run on a synthetic sequence written to disk -----------------------------------------------------
@@ -293,7 +296,7 @@ def test_run_on_synthetic_folder_tracks_every_frame(synthetic_run, synthetic_fol
     assert summary["dataset"] == synthetic_folder.name
     report = evaluate_files(synthetic_folder / "groundtruth.txt", out_dir / "trajectory.txt")
     assert report.ate.n_matched == 30
-    assert report.ate.rmse < 0.01
+    assert report.ate.rmse < 0.0042 * 1.15   # measured 4.2 mm; the regression margin of every accuracy gate
     assert not (out_dir / "groundtruth.txt").exists(), "real folders keep their ground truth where it is"
 
 

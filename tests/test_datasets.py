@@ -13,14 +13,7 @@ from slam.datasets import (DatasetError, DatasetWarning, SyntheticSequence, TumD
                            guess_camera, open_dataset, read_intrinsics, write_tum_layout)
 from slam.datasets.tum import quat_to_matrix
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
-def real(name: str) -> Path:
-    path = DATA / name
-    if not path.is_dir():
-        pytest.skip(f"real sequence {path} not available (shared data folder absent)")
-    return path
+from conftest import real_sequence as real
 
 
 def make_tum(root: Path, t_rgb, t_depth, ext: str = ".png", present=None, assoc=None) -> Path:
@@ -177,6 +170,7 @@ def test_groundtruth_parsing(tmp_path):
 
 # --- real sequences ---------------------------------------------------------------------------------
 
+@pytest.mark.real
 def test_real_desk_9frames_skips_listed_but_missing():
     root = real("rgbd_dataset_freiburg1_desk_9frames")
     with pytest.warns(DatasetWarning, match=r"604 of 613 listed rgb files") as record:
@@ -190,6 +184,7 @@ def test_real_desk_9frames_skips_listed_but_missing():
     assert ts[0] <= ds.timestamps[0] and ts[-1] >= ds.timestamps[-1] and poses.shape == (len(ts), 4, 4)
 
 
+@pytest.mark.real
 def test_real_xyz_first37_associates_from_lists():
     root = real("rgbd_dataset_freiburg1_xyz_first37")
     assert not (root / "associations.txt").exists()
@@ -205,6 +200,7 @@ def test_real_xyz_first37_associates_from_lists():
     assert frames[0].timestamp == pytest.approx(1305031102.175304)
 
 
+@pytest.mark.real
 @pytest.mark.parametrize("name, n, camera", [("rgbd_dataset_freiburg1_rpy_first400", 400, "tum_fr1"),
                                              ("rgbd_bonn_crowd_first480", 480, "bonn")])
 def test_real_sequences_with_associations(name, n, camera):

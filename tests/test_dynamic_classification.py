@@ -1,9 +1,10 @@
 """Classification quality of the dynamic methods on a generated scene with exact dynamic masks.
 
 Ground-truth person boxes stand in for the detector; the fusion is the shipped `dynamic_all`
-preset. Measured on 60 frames of people walking (seed 0), see docs/dynamic.md:
-cpr 0.75 / 0.94, box_depth 1.00 / 0.97, flow_epipolar 0.87 / 0.77, depth_sdf 0.92 / 0.94,
-fused 0.94 / 1.00 (precision / recall).
+preset. ``MEASURED`` is what ``python tools/classification.py`` prints for 60 frames of people walking
+(seed 0; the table is also printed at the end of the test run); a method fails when its precision or
+recall falls more than 15 % below (the regression margin of every accuracy gate). The fusion must
+also keep the 0.9 / 0.9 that the dynamic front end was accepted with.
 """
 from __future__ import annotations
 
@@ -14,34 +15,50 @@ from frontend.dynamic.oracle import precision_recall
 from slam.datasets import SyntheticSequence
 from slam.dynamic_eval import boundary_band, classify_synthetic, synthetic_config
 
+from conftest import report_figures
+
 METHODS = ("cpr", "box_depth", "flow_epipolar", "depth_sdf")
+MEASURED = {  # precision, recall (2026-11-24)
+    "cpr": (0.751, 0.927), "box_depth": (1.000, 0.967), "flow_epipolar": (0.866, 0.766),
+    "depth_sdf": (0.917, 0.941), "fused": (0.944, 0.998),
+}
+REGRESSION_MARGIN = 0.85
 
 
 @pytest.fixture(scope="module")
 def scores():
     sequence = SyntheticSequence(n_frames=60, movers="people", seed=0)
-    return classify_synthetic(sequence, synthetic_config(sequence, preset="dynamic_all"))
+    result = classify_synthetic(sequence, synthetic_config(sequence, preset="dynamic_all"))
+    report_figures("classification on 60 generated frames of people walking (tools/classification.py)",
+                   result.table())
+    return result
 
 
+@pytest.mark.slow
 def test_every_frame_is_tracked_with_people_walking(scores):
     assert scores.tracked_frames == scores.frames == 60
 
 
+@pytest.mark.slow
 def test_fusion_reaches_090_precision_and_recall(scores):
     assert scores.precision["fused"] >= 0.9
     assert scores.recall["fused"] >= 0.9
 
 
+@pytest.mark.slow
 def test_fusion_beats_every_single_method_on_recall(scores):
     assert scores.recall["fused"] >= max(scores.recall[m] for m in METHODS)
 
 
-def test_each_method_finds_the_people(scores):
-    for method in METHODS:
-        assert scores.recall[method] >= 0.7, method
-        assert scores.precision[method] >= 0.7, method
+@pytest.mark.slow
+@pytest.mark.parametrize("method", [*METHODS, "fused"])
+def test_each_method_keeps_its_measured_precision_and_recall(scores, method):
+    precision, recall = MEASURED[method]
+    assert scores.precision[method] >= REGRESSION_MARGIN * precision, (method, scores.precision[method])
+    assert scores.recall[method] >= REGRESSION_MARGIN * recall, (method, scores.recall[method])
 
 
+@pytest.mark.slow
 def test_scores_cover_enough_dynamic_features(scores):
     assert scores.dynamic_features > 1000 and scores.features > 30000
 

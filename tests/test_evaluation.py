@@ -20,8 +20,7 @@ from slam.evaluation import (
 )
 from slam.trajectory import TrajectoryFormatError, read_tum, write_tum
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-FR1_XYZ = DATA / "rgbd_dataset_freiburg1_xyz_first37"
+from conftest import XYZ, real_sequence
 
 
 # ------------------------------------------------------------------ helpers
@@ -300,11 +299,11 @@ def test_associate_matches_evo_indices(case: str) -> None:
     np.testing.assert_array_equal(i_est, est.positions_xyz[:, 0].astype(int))
 
 
-@pytest.mark.skipif(not (FR1_XYZ / "groundtruth.txt").exists(),
-                    reason=f"shared TUM data not found at {FR1_XYZ}")
+@pytest.mark.real
 def test_agrees_with_evo_on_fr1_xyz(tmp_path: Path) -> None:
     """GT of fr1/xyz vs an 'estimate' at the rgb.txt stamps: nearest GT pose with seeded
     noise, expressed in another world frame."""
+    FR1_XYZ = real_sequence(XYZ)
     gt_t, gt = read_tum(FR1_XYZ / "groundtruth.txt")
     rgb_t = np.array([float(line.split()[0]) for line in (FR1_XYZ / "rgb.txt").read_text().splitlines()
                       if line.strip() and not line.startswith("#")])

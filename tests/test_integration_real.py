@@ -1,7 +1,7 @@
 """End-to-end runs on the real TUM sequences in ../shared/data (skipped where that folder is absent).
 
-Kept short: fr1/rpy runs its first 120 frames only; the full-sequence accuracy check is the benchmark
-tool's job, not the unit tests'.
+Kept short: fr1/rpy runs its first 120-160 frames only; the full-sequence accuracy gates are in
+test_accuracy_gates.py.
 """
 from __future__ import annotations
 
@@ -20,19 +20,9 @@ from slam.evaluation import ate, evaluate_files
 from slam.pipeline import Pipeline
 from slam.system import System
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-XYZ = "rgbd_dataset_freiburg1_xyz_first37"
-DESK = "rgbd_dataset_freiburg1_desk_9frames"
-RPY = "rgbd_dataset_freiburg1_rpy_first400"
+from conftest import DESK, RPY, XYZ, real_sequence as real, tum_pose_lines as pose_lines
 
-
-def real(name: str) -> Path:
-    path = DATA / name
-    if not DATA.is_dir():
-        pytest.skip(f"real data folder {DATA} is absent, so sequence {name} is not available")
-    if not path.is_dir():
-        pytest.skip(f"real sequence {name} is not in {DATA}")
-    return path
+pytestmark = pytest.mark.real
 
 
 def run_pipeline(root: Path, output: Path, max_frames=None) -> tuple[Pipeline, dict]:
@@ -41,10 +31,6 @@ def run_pipeline(root: Path, output: Path, max_frames=None) -> tuple[Pipeline, d
     pipeline = Pipeline(dataset, config, output, max_frames)
     pipeline.run()
     return pipeline, json.loads((output / "summary.json").read_text())
-
-
-def pose_lines(path: Path) -> list[str]:
-    return [line for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
 
 
 # --- fr1/xyz ---------------------------------------------------------------------------------------
@@ -118,6 +104,7 @@ def rpy_run(tmp_path_factory):
     return root, out, summary
 
 
+@pytest.mark.slow
 def test_fr1_rpy_first_120_frames_all_tracked_with_ate_below_3cm(rpy_run):
     root, out, summary = rpy_run
     assert summary["frames"] == summary["tracked"] == 120
@@ -170,26 +157,25 @@ def test_corrupt_rgb_and_deleted_depth_are_skipped_with_warnings(tmp_path):
     assert report.ate.rmse < 0.02
 
 
+@pytest.mark.slow
 def test_tracking_resumes_in_the_same_map_after_a_blackout():
     """30 blank frames in the middle of fr1/rpy: those frames are LOST (no invented poses) and
-    tracking resumes within 10 frames afterwards, in the same map (ATE over tracked frames)."""
+    tracking resumes on the first frame afterwards (what the README claims), in the same map: the
+    ATE over the tracked frames stays within 15 % of the full run's baseline (tools/accuracy.py)."""
     from slam.datasets.faults import Blackout
 
-    seq = DATA / "rgbd_dataset_freiburg1_rpy_first400"
-    if not seq.is_dir():
-        pytest.skip(f"real data not found at {seq}")
+    seq = real(RPY)
     config = resolve_run_config(seq, [], {})
-    dataset = Blackout(TumDataset(seq, depth_scale=config.camera.depth_scale), start=80, count=30)
+    dataset = Blackout(TumDataset(seq, depth_scale=config.camera.depth_scale), start=100, count=30)
     system = System(config)
     tracked = []
     for i, frame in enumerate(dataset):
-        if i >= 150:
+        if i >= 160:
             break
         tracked.append(system.process(frame.rgb, frame.depth, frame.timestamp, i).T_wc is not None)
     tracked = np.array(tracked)
-    assert not tracked[80:110].any()
-    assert tracked[:80].all()
-    assert tracked[110:120].any() and tracked[120:].all()
+    assert not tracked[100:130].any()
+    assert tracked[:100].all() and tracked[130:].all(), np.flatnonzero(~tracked[130:]) + 130
     stamps, poses, ok = system.trajectory()
     gt_t, gt_poses = dataset.groundtruth()
-    assert ate(gt_t, gt_poses, stamps[ok], poses[ok]).rmse < 0.035
+    assert ate(gt_t, gt_poses, stamps[ok], poses[ok]).rmse < 0.0241 * 1.15

@@ -68,6 +68,7 @@ def _detect_all(slam_map, vocab, camera, **kw) -> dict[int, LoopCandidate]:
     return found
 
 
+@pytest.mark.slow
 def test_loop_detected_at_revisit_with_correct_relative_pose(run):
     system, slam_map, vocab, gt = run
     frame_of = [kf.frame_index for kf in slam_map.keyframes]
@@ -94,6 +95,7 @@ def test_loop_detected_at_revisit_with_correct_relative_pose(run):
     assert sum(frame_of[k] >= PERIOD for k in loops) >= 3
 
 
+@pytest.mark.slow
 def test_all_dynamic_query_keyframes_detect_nothing(run):
     system, slam_map, vocab, _ = run
     saved = {}
@@ -112,6 +114,7 @@ def test_all_dynamic_query_keyframes_detect_nothing(run):
             slam_map.keyframes[k].features.dynamic_prob = prob
 
 
+@pytest.mark.slow
 def test_consistency_requires_consecutive_keyframes(run):
     system, slam_map, vocab, _ = run
     strict = _detect_all(slam_map, vocab, system.camera, consistency=3)

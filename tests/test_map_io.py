@@ -16,8 +16,7 @@ from slam.evaluation import ate
 from slam.system import System
 
 N_FRAMES = 40
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-XYZ = "rgbd_dataset_freiburg1_xyz_first37"
+from conftest import XYZ, real_sequence
 
 
 def map_arrays(slam_map) -> dict[str, np.ndarray]:
@@ -180,10 +179,9 @@ def test_cli_save_and_load_map(tmp_path, monkeypatch):
     assert main(["run", str(root), "-o", str(tmp_path / "d"), "-q", "--load-map", str(tmp_path / "bad.npz")]) == 2
 
 
+@pytest.mark.real
 def test_localization_only_on_fr1_xyz(tmp_path):
-    root = DATA / XYZ
-    if not root.is_dir():
-        pytest.skip(f"real sequence {XYZ} is not in {DATA}")
+    root = real_sequence(XYZ)
     config = resolve_run_config(root, [], {})
     dataset = TumDataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
     frames = list(dataset)

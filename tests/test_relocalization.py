@@ -41,6 +41,7 @@ def kidnapped():
     return system, gt, outputs, revisit, keyframes_before
 
 
+@pytest.mark.slow
 def test_kidnapped_camera_is_relocalized_in_the_same_map(kidnapped):
     system, gt, outputs, revisit, keyframes_before = kidnapped
     assert all(o.T_wc is not None for o in outputs[:MAPPED])
@@ -57,6 +58,7 @@ def test_kidnapped_camera_is_relocalized_in_the_same_map(kidnapped):
     assert not ok[MAPPED:MAPPED + BLANK].any() and np.isnan(poses[MAPPED:MAPPED + BLANK]).all()
 
 
+@pytest.mark.slow
 def test_relocalization_is_timed(kidnapped):
     system = kidnapped[0]
     _, report = system.place_recognition_report()
@@ -65,6 +67,7 @@ def test_relocalization_is_timed(kidnapped):
     assert reloc["max_ms"] > 0
 
 
+@pytest.mark.slow
 def test_map_file_keeps_vocabulary_words_and_loops(kidnapped, tmp_path):
     system = kidnapped[0]
     edge = system.loop_closer.add_constraint(0, system.num_keyframes - 1,
@@ -89,6 +92,7 @@ def test_map_file_keeps_vocabulary_words_and_loops(kidnapped, tmp_path):
     np.testing.assert_allclose(stored.T_match_query, edge.T_match_query)
 
 
+@pytest.mark.slow
 def test_localization_run_relocalizes_through_the_saved_index(kidnapped, tmp_path):
     system = kidnapped[0]
     path = tmp_path / "map.npz"
@@ -105,6 +109,7 @@ def test_localization_run_relocalizes_through_the_saved_index(kidnapped, tmp_pat
     assert _error_vs_truth(out.T_wc, gt[20], gt[0]) < 0.02
 
 
+@pytest.mark.slow
 def test_inconsistent_words_are_a_clear_error(kidnapped, tmp_path):
     system = kidnapped[0]
     path = tmp_path / "map.npz"

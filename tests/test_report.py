@@ -54,6 +54,7 @@ def read_csv(path: Path) -> np.ndarray:
 
 # --- images ----------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_plots_exist_have_their_size_and_are_not_blank(dynamic_run):
     for name in PLOTS:
         image = read_png(dynamic_run / "report" / name)
@@ -62,6 +63,7 @@ def test_plots_exist_have_their_size_and_are_not_blank(dynamic_run):
         assert len(np.unique(image.reshape(-1, 3), axis=0)) > 20, f"{name} has almost no colours"
 
 
+@pytest.mark.slow
 def test_dynamic_strip_has_six_thumbnails_side_by_side(dynamic_run):
     strip = read_png(dynamic_run / "report" / "dynamic_strip.png")
     assert strip.shape == (240, 6 * 320 + 5 * 4, 3)     # 640x480 frames at 320 px wide, 4 px gaps
@@ -75,6 +77,7 @@ def test_dynamic_strip_has_six_thumbnails_side_by_side(dynamic_run):
 
 # --- the plotted numbers are the evaluated ones -------------------------------------------------------
 
+@pytest.mark.slow
 def test_ate_series_is_the_summary_ate(dynamic_run):
     summary = json.loads((dynamic_run / "summary.json").read_text())
     series = read_csv(dynamic_run / "report" / "ate_over_time.csv")
@@ -85,6 +88,7 @@ def test_ate_series_is_the_summary_ate(dynamic_run):
     np.testing.assert_allclose(series[:, 2], report.ate.errors, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_rpe_series_is_the_evaluated_rpe(dynamic_run):
     evaluation = json.loads((dynamic_run / "evaluation.json").read_text())
     series = read_csv(dynamic_run / "report" / "rpe.csv")
@@ -97,6 +101,7 @@ def test_rpe_series_is_the_evaluated_rpe(dynamic_run):
 
 # --- index.html ------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_index_links_every_image_and_shows_the_summary(dynamic_run):
     page = (dynamic_run / "report" / "index.html").read_text()
     summary = json.loads((dynamic_run / "summary.json").read_text())
@@ -120,6 +125,7 @@ def test_index_escapes_values():
 
 # --- the extra trajectory formats of the same run ------------------------------------------------------
 
+@pytest.mark.slow
 def test_configured_formats_are_written_by_the_run(dynamic_run):
     for name in ("trajectory.kitti.txt", "trajectory.kitti.times.txt", "trajectory.euroc.csv",
                  "trajectory_online.kitti.txt", "trajectory_online.euroc.csv", "keyframes.kitti.txt",
@@ -130,6 +136,7 @@ def test_configured_formats_are_written_by_the_run(dynamic_run):
 
 # --- never breaks a run ------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_a_failing_plot_is_a_warning_and_left_out(dynamic_run, tmp_path, monkeypatch, caplog):
     import slam.report_plots
 

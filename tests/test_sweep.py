@@ -4,30 +4,17 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import importlib.util
 import io
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
+from conftest import REPO, load_tool
 
-
-def load_tool(name: str):
-    spec = importlib.util.spec_from_file_location(f"{name}_tool", TOOLS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    sys.path.insert(0, str(TOOLS))  # ablation.py imports its sibling sweep.py
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(TOOLS))
-    return module
-
+TOOLS = REPO / "tools"
 
 sweep = load_tool("sweep")
 tables = load_tool("sweep_tables")
@@ -57,6 +44,7 @@ def read_csv(path: Path) -> list[dict]:
         return list(csv.DictReader(handle))
 
 
+@pytest.mark.slow
 def test_csv_has_one_row_per_run_with_the_run_folders_numbers(tiny_sweep):
     status, output, _ = tiny_sweep
     assert status == 1  # some runs failed; the sweep itself finished
@@ -78,6 +66,7 @@ def test_csv_has_one_row_per_run_with_the_run_folders_numbers(tiny_sweep):
     assert rows[2]["ms_dynamic.box_depth"] and not rows[0]["ms_dynamic.box_depth"]  # per-module columns
 
 
+@pytest.mark.slow
 def test_runs_get_their_seed_and_the_detection_cache(tiny_sweep):
     _, output, _ = tiny_sweep
     config = yaml.safe_load((output / "runs" / "synthetic_people__dynamic_box_depth__r1" / "config.yaml").read_text())
@@ -86,6 +75,7 @@ def test_runs_get_their_seed_and_the_detection_cache(tiny_sweep):
     assert Path(config["dynamic"]["detector"]["cache_dir"]) == output.parent / "cache"
 
 
+@pytest.mark.slow
 def test_a_failing_configuration_is_recorded_with_its_message(tiny_sweep):
     _, output, printed = tiny_sweep
     failed = [r for r in read_csv(output / "sweep.csv") if r["config"] == "broken"]
@@ -96,6 +86,7 @@ def test_a_failing_configuration_is_recorded_with_its_message(tiny_sweep):
     assert "2 (2 failed: ConfigError:" in line and "| – | – |" in line
 
 
+@pytest.mark.slow
 def test_markdown_table_has_the_columns_and_the_medians_of_the_runs(tiny_sweep):
     _, output, printed = tiny_sweep
     assert (output / "sweep.md").read_text() == printed
@@ -222,6 +213,28 @@ def test_ablation_alias_translates_to_sweep_arguments():
     assert args[6:10] == ["a=1", "--jobs", "1", "--output"]
 
 
+@pytest.mark.slow
+def test_same_seed_gives_the_same_row(tiny_sweep, tmp_path):
+    """The same sequence, configuration and seed, run again alone (one job instead of two in
+    parallel): every accuracy column of its row is identical; only the timings may differ."""
+    _, output, _ = tiny_sweep
+    argv = ["--sequences", "synthetic:people", "--configs", "dynamic_box_depth", "--repeats", "1",
+            "--max-frames", str(FRAMES), "--jobs", "1", "--output", str(tmp_path / "again"),
+            "--detection-cache", str(output.parent / "cache"), "--quiet"]
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert sweep.main(argv) == 0
+    again = read_csv(tmp_path / "again" / "sweep.csv")
+    first = [r for r in read_csv(output / "sweep.csv") if r["config"] == "dynamic_box_depth" and r["seed"] == "0"]
+    assert len(again) == len(first) == 1
+    columns = [k for k in first[0] if not k.startswith("ms") and k not in ("median_ms", "mean_ms", "run_dir",
+                                                                            "wall_s", "fps")]
+    assert {"ate_rmse_m", "rpe_trans_m", "tracked", "seed"} <= set(columns)
+    assert {k: again[0][k] for k in columns} == {k: first[0][k] for k in columns}
+    first_run, again_run = Path(first[0]["run_dir"]), Path(again[0]["run_dir"])
+    assert (first_run / "trajectory.txt").read_bytes() == (again_run / "trajectory.txt").read_bytes()
+
+
+@pytest.mark.slow
 def test_resume_keeps_finished_runs_and_reruns_the_failed_ones(tiny_sweep):
     """Last: it reruns the module's sweep in place."""
     _, output, _ = tiny_sweep
