@@ -144,7 +144,7 @@ def _static_surface_distance(seq, vertices: np.ndarray, frames) -> np.ndarray:
 @pytest.mark.slow
 def test_dense_mesh_lies_on_the_static_surfaces(people_run, tmp_path):
     """Measured (printed at the end of the run): 95 % of the vertices within 5.7 mm of the true static
-    surface and 99 % within 8 mm with masks; the gates are 15 % above (the regression margin of every
+    surface and 99 % within 8.1 mm with masks; the gates are 15 % above (the regression margin of every
     accuracy gate). Without masks the people stay in the mesh: its 99th percentile is metres off, so
     'more than 0.3 m' (a person's depth, the smallest thing that can be left in) tells them apart."""
     seq, out, _summary = people_run
@@ -158,7 +158,7 @@ def test_dense_mesh_lies_on_the_static_surfaces(people_run, tmp_path):
                    f"with masks: 95 % within {p95 * 1000:.1f} mm, 99 % within {p99 * 1000:.1f} mm; "
                    f"without masks: 99 % within {unmasked_p99:.2f} m")
     assert np.isfinite(masked).mean() > 0.98
-    assert p95 < 0.0057 * 1.15 and p99 < 0.008 * 1.15, (p95, p99)
+    assert p95 < 0.0057 * 1.15 and p99 < 0.0081 * 1.15, (p95, p99)
     assert unmasked_p99 > 0.3, "the people should be in an unmasked mesh"
     cloud = o3d.io.read_point_cloud(str(out / CLOUD))
     assert len(cloud.points) > 1000 and cloud.has_colors()
@@ -245,8 +245,8 @@ def bonn_run(accuracy_runs):
 
 # Ghost shares measured on the gates' Bonn run (printed at the end of the test run); each gate is 15 %
 # above its measurement, the regression margin of every accuracy gate.
-GHOSTS_WHOLE_RUN = 0.0025        # with masks, the whole run
-GHOSTS_AMONG_PEOPLE = 0.0026     # with masks, keyframes from frame 230 on
+GHOSTS_WHOLE_RUN = 0.0024        # with masks, the whole run
+GHOSTS_AMONG_PEOPLE = 0.0025     # with masks, keyframes from frame 230 on
 
 
 @pytest.mark.real
