@@ -15,7 +15,8 @@ Both models have sigmoids applied inside and no NMS: every (anchor, class) pair 
 per-class NMS and clipping to the image. Decoding is vectorised; the grids are built once.
 
 ``CachedDetector`` stores the boxes per frame timestamp in a compressed ``.npz`` so repeated runs on
-the same sequence skip the network; ``build_detector`` wires config, model path and cache together.
+the same sequence skip the network, keyed by the model file's sha256 (in its name and inside it) so
+another model never reads old boxes; ``build_detector`` wires config, model path and cache together.
 The box geometry (letterbox, box mapping, IoU, NMS) is in ``frontend.detector_boxes``, re-exported here.
 """
 from __future__ import annotations
@@ -263,12 +264,34 @@ def _ts_key(timestamp: float) -> str:
     return "%.6f" % float(timestamp)
 
 
+_DIGESTS: dict[tuple[str, int, int], str] = {}   # (resolved path, mtime_ns, size) -> sha256 hex
+
+
+def model_digest(model_path) -> str:
+    """sha256 (hex) of a model file's content. The model's kind and settings do not identify its boxes
+    (a re-exported or retrained file keeps its name), its bytes do. Cached by path, mtime and size, so
+    a run hashes its model once and a replaced file is hashed again."""
+    path = Path(model_path).expanduser().resolve()
+    if not path.is_file():
+        raise DetectorError(f"detector model file not found: {path} (needed to key the detection cache)")
+    key = (str(path), path.stat().st_mtime_ns, path.stat().st_size)
+    if key not in _DIGESTS:
+        digest = hashlib.sha256()
+        with open(path, "rb") as handle:
+            for chunk in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(chunk)
+        _DIGESTS[key] = digest.hexdigest()
+    return _DIGESTS[key]
+
+
 def cache_path_for(cache_dir, sequence_name: str, cfg: DetectorConfig,
-                   class_filter: Optional[Iterable[int]] = None) -> Path:
-    """``<cache_dir>/<sequence>__<model>_s<score>_n<nms>[_c<classes hash>].npz``: settings that change
-    the boxes are part of the name so different settings never share a cache."""
+                   class_filter: Optional[Iterable[int]] = None, model_path=None) -> Path:
+    """``<cache_dir>/<sequence>__<model>_m<sha256[:16]>_s<score>_n<nms>[_c<classes hash>].npz``: the model
+    file's content (``model_path``, default ``resolve_model_path(cfg)``) and the settings that change the
+    boxes are part of the name, so a different model or setting never shares a cache."""
     seq = re.sub(r"[^A-Za-z0-9_.-]+", "_", sequence_name.strip()).strip("._") or "sequence"
-    name = f"{seq}__{cfg.model}_s{cfg.score_threshold:.3f}_n{cfg.nms_iou:.3f}"
+    digest = model_digest(resolve_model_path(cfg) if model_path is None else model_path)
+    name = f"{seq}__{cfg.model}_m{digest[:16]}_s{cfg.score_threshold:.3f}_n{cfg.nms_iou:.3f}"
     if class_filter is not None:
         ids = ",".join(str(c) for c in sorted(set(int(c) for c in class_filter)))
         name += "_c" + hashlib.sha1(ids.encode()).hexdigest()[:8]
@@ -281,12 +304,14 @@ class CachedDetector:
     Loads the file on construction when present (a corrupt file is reported with a warning and
     ignored: the boxes are recomputed and the file rewritten on ``save``). ``save()`` writes
     atomically (temporary file in the same folder, then ``os.replace``) and only when something new
-    was computed. Frames must have distinct timestamps.
+    was computed. Frames must have distinct timestamps. With ``model_sha256`` (``model_digest(path)``)
+    the file records it, and a file recorded with another model is treated like a corrupt one.
     """
 
-    def __init__(self, inner: Detector, cache_file):
+    def __init__(self, inner: Detector, cache_file, model_sha256: Optional[str] = None):
         self.inner = inner
         self.cache_file = Path(cache_file)
+        self.model_sha256 = model_sha256
         self._entries: dict[str, np.ndarray] = {}   # key -> (N,6) x0 y0 x1 y1 score class
         self._dirty = False
         self.hits = 0
@@ -301,6 +326,10 @@ class CachedDetector:
                 keys = data["keys"]
                 counts = data["counts"].astype(np.int64)
                 rows = data["rows"].astype(np.float64)
+                stored = str(data["model_sha256"]) if "model_sha256" in data.files else None
+            if self.model_sha256 is not None and stored is not None and stored != self.model_sha256:
+                raise ValueError(f"made with another model file (sha256 {stored[:16]}..., this model's is "
+                                 f"{self.model_sha256[:16]}...)")
             if keys.ndim != 1 or counts.shape != keys.shape or rows.ndim != 2 or rows.shape[1] != 6 \
                     or int(counts.sum()) != rows.shape[0] or np.any(counts < 0):
                 raise ValueError("inconsistent arrays")
@@ -342,8 +371,9 @@ class CachedDetector:
         keys = sorted(self._entries)
         counts = np.array([len(self._entries[k]) for k in keys], dtype=np.int64)
         rows = (np.concatenate([self._entries[k] for k in keys], axis=0) if keys else np.zeros((0, 6)))
+        digest = {} if self.model_sha256 is None else {"model_sha256": np.array(self.model_sha256)}
         write_npz_atomic(self.cache_file, keys=np.array(keys, dtype=np.str_), counts=counts,
-                         rows=rows.astype(np.float64))
+                         rows=rows.astype(np.float64), **digest)
         self._dirty = False
 
     def close(self) -> None:
@@ -369,8 +399,10 @@ def build_detector(cfg: DetectorConfig, classes: ClassGroups, sequence_name: str
     """The ONNX detector for ``cfg`` keeping only the configured classes, wrapped in a
     ``CachedDetector`` when ``cfg.cache_dir`` is set. Both have ``save()`` and ``close()``."""
     class_filter = class_filter_of(classes)
-    detector = OnnxDetector(resolve_model_path(cfg), kind=cfg.model, score_threshold=cfg.score_threshold,
+    path = resolve_model_path(cfg)
+    detector = OnnxDetector(path, kind=cfg.model, score_threshold=cfg.score_threshold,
                             nms_iou=cfg.nms_iou, threads=cfg.threads, class_filter=class_filter)
     if cfg.cache_dir:
-        return CachedDetector(detector, cache_path_for(cfg.cache_dir, sequence_name, cfg, class_filter))
+        return CachedDetector(detector, cache_path_for(cfg.cache_dir, sequence_name, cfg, class_filter, path),
+                              model_digest(path))
     return detector

@@ -3,6 +3,7 @@
 The data goes to a temporary file in the destination folder (same file system, so the rename is
 atomic), is flushed and fsynced, then ``os.replace``-d over the target; the folder is fsynced so the
 rename survives a crash. On any failure the temporary file is removed and the old file stays.
+``ensure_output_dir`` checks a results folder up front, so an unwritable one fails before any work.
 """
 from __future__ import annotations
 
@@ -14,6 +15,33 @@ from typing import IO, Callable, Union
 import numpy as np
 
 PathLike = Union[str, "os.PathLike[str]"]
+
+
+class OutputDirError(OSError):
+    """A results folder that cannot be created or written to."""
+
+
+def ensure_output_dir(path: PathLike) -> Path:
+    """Create ``path`` (with its parents) and prove it writable by creating and removing a file in it.
+
+    Checking permissions instead would be wrong for root (who passes every permission check yet
+    cannot write under a regular file or into /proc), so the check does what the run will do.
+    Raises OutputDirError naming the folder and why.
+    """
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".dynslam-write-check.", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        if isinstance(exc, FileExistsError) or (folder.exists() and not folder.is_dir()):
+            reason = "it exists and is not a folder"
+        elif isinstance(exc, NotADirectoryError):
+            reason = "a part of its path is a file, not a folder"
+        raise OutputDirError(f"output folder {folder} cannot be used: {reason}") from None
+    return folder
 
 
 def write_atomic(path: PathLike, write: Callable[[IO[bytes]], None]) -> Path:

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130   # 128 + SIGINT, what a shell reports for a Ctrl-C'd command
 DEMO_MOVERS = ("none", "people", "boxes", "crowd", "drag")   # = slam.datasets.synthetic_movers.MOVER_PRESETS
 DEMO_ORACLE_MARGIN_PX = 8   # the generated movers' true boxes, widened as a detector's boxes are
 TRAJECTORY_FORMAT_NAMES = ("tum", "kitti", "euroc")   # = slam.config.TRAJECTORY_FORMATS (not imported: --help stays light)
@@ -80,6 +81,7 @@ def _progress_printer(total: int, quiet: bool):
 
 
 def cmd_run(args) -> int:
+    from slam.atomic_io import ensure_output_dir
     from slam.datasets import DatasetError, is_rosbag, open_dataset
     from slam.pipeline import Pipeline
 
@@ -91,10 +93,12 @@ def cmd_run(args) -> int:
     if not root.is_dir() and not is_rosbag(root):
         raise DatasetError(f"{root} is not a dataset (expected {expected})")
     config = resolve_run_config(root, args.config, _parse_overrides(args.set))
+    if args.output:   # an unwritable results folder fails now, not after the whole run
+        ensure_output_dir(args.output)
     dataset = open_dataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
     if args.blackout:
         dataset = _blackout(dataset, args.blackout)
-    output = Path(args.output) if args.output else _default_output(dataset.name)
+    output = ensure_output_dir(args.output or _default_output(dataset.name))
     total = min(len(dataset), args.max_frames or len(dataset))
     prior_map = None
     if args.load_map:
@@ -110,7 +114,7 @@ def cmd_run(args) -> int:
     summary = pipeline.run()
     progress.finish()
     print(pipeline.format_summary())
-    return 130 if summary.interrupted else 0
+    return EXIT_INTERRUPTED if summary.interrupted else 0
 
 
 def _blackout(dataset, spec: str):
@@ -127,6 +131,7 @@ def _blackout(dataset, spec: str):
 def cmd_demo(args) -> int:
     from frontend.dynamic.oracle import synthetic_oracle
     from slam.datasets import SyntheticSequence
+    from slam.atomic_io import ensure_output_dir
     from slam.pipeline import Pipeline
 
     sequence = SyntheticSequence(n_frames=args.frames, seed=args.seed, movers=args.movers)
@@ -135,7 +140,7 @@ def cmd_demo(args) -> int:
                  "camera.width": sequence.width, "camera.height": sequence.height,
                  "camera.distortion": [0.0] * 5, "seed": args.seed}
     config = resolve_run_config(None, args.config, {**overrides, **_parse_overrides(args.set)})
-    output = Path(args.output) if args.output else _default_output("synthetic")
+    output = ensure_output_dir(args.output or _default_output("synthetic"))
     movers = "" if args.movers == "none" else f" with {args.movers} moving"
     print(f"dynslam demo: {args.frames} frames of a generated textured room{movers} (seed {args.seed})",
           file=sys.stderr)
@@ -357,13 +362,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from frontend.detector import DetectorError
     from backend.map_io import MapCameraError, MapFormatError
     from slam.map_export import MapExportError
+    from slam.atomic_io import OutputDirError
 
     try:
         return args.func(args)
     except (ConfigError, DatasetError, DownloadError, EvaluationError, TrajectoryFormatError, DetectorError,
-            FileNotFoundError, MapFormatError, MapCameraError, MapExportError) as exc:
+            FileNotFoundError, MapFormatError, MapCameraError, MapExportError, OutputDirError) as exc:
         print(f"dynslam {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except KeyboardInterrupt:   # Ctrl-C before the run started (a run itself stops cleanly, see Pipeline)
+        print(f"dynslam {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

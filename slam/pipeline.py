@@ -27,7 +27,10 @@ For ``dynslam export`` (slam.run_artifacts): ``masks/`` (keyframes' dynamic mask
 (keyframe images, when the dataset cannot give them back), ``map.npz`` and ``map_sparse.ply``.
 With ``save_map`` the final map is also written (dynslam-map .npz, see backend.map_io), atomically;
 with ``prior_map`` the run localises against that fixed map instead of building one.
-Final files are written atomically, also when the run is interrupted.
+Final files are written atomically. Ctrl-C stops the run after the frame being processed and every
+result is still written (``slam.interrupts``); ``summary.json`` then says ``"interrupted": true``.
+Frames are checked before processing (``slam.input_checks``): a colour image of the wrong size is
+skipped with a warning, frames without any depth are reported.
 """
 from __future__ import annotations
 
@@ -43,8 +46,10 @@ import numpy as np
 from slam.config import SlamConfig
 from slam.datasets.base import RGBDDataset
 from slam.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
+from slam.input_checks import InputChecks
+from slam.interrupts import DeferredInterrupt
 from slam.system import FrameOutput, System
-from slam.atomic_io import write_text_atomic
+from slam.atomic_io import ensure_output_dir, write_text_atomic
 from slam.run_artifacts import RunArtifacts, needs_keyframe_copies
 from slam.trajectory import TumStreamWriter, format_tum_line, tum_rows_from_poses, write_tum
 
@@ -65,9 +70,10 @@ class RunSummary:
     timing_ms: dict[str, dict[str, float]] = field(default_factory=dict)
     ate_rmse_m: Optional[float] = None
     lost_frames: list[int] = field(default_factory=list)
-    skipped_files: list[str] = field(default_factory=list)    # unreadable or corrupt, found while running
+    skipped_files: list[str] = field(default_factory=list)    # unreadable, corrupt or wrong size (while running)
     missing_files: list[str] = field(default_factory=list)    # listed but absent, found when opening
-    interrupted: bool = False
+    no_depth_frames: list[int] = field(default_factory=list)  # frames without a single valid depth pixel
+    interrupted: bool = False                                 # stopped (Ctrl-C) before the last frame
     dynamic_methods: list[str] = field(default_factory=list)
     dynamic_flagged: dict[str, dict[str, float]] = field(default_factory=dict)  # per method and fused
     loops: list[dict[str, Any]] = field(default_factory=list)   # every loop factor added, with timestamps
@@ -102,33 +108,39 @@ class Pipeline:
                                   dataset_path=None if root is None else str(Path(root).resolve()))
         self.report: Optional[EvaluationReport] = None
         self.artifacts = RunArtifacts(self.output_dir, config, needs_keyframe_copies(dataset))  # export inputs
+        self.checks = InputChecks(config.camera.width, config.camera.height, getattr(dataset, "name", "dataset"))
 
     def run(self) -> RunSummary:
-        self._prepare_output()
-        start = time.perf_counter()
-        try:
-            self._run_pipeline()
-        except KeyboardInterrupt:
-            self.summary.interrupted = True
-            log.warning("interrupted: writing the results of the %d frames processed", self.summary.frames)
-        finally:
-            self.summary.wall_time_s = time.perf_counter() - start
-            self.system.close()
-            self._write_result_poses()
-        self._save_map()
-        self.artifacts.finish(self.system)
-        self._write_graph()
-        self._run_evaluation()
-        self._write_summary()
-        self._write_report()
+        # Ctrl-C only sets a flag (checked between frames), so neither a frame nor a final write is
+        # cut in half and everything computed so far is written.
+        with DeferredInterrupt() as interrupt:
+            self._prepare_output()
+            start = time.perf_counter()
+            try:
+                self._run_pipeline(interrupt)
+            except KeyboardInterrupt:   # raised by Python itself: no handler of ours outside the main thread
+                self.summary.interrupted = True
+            finally:
+                interrupt.finishing()
+                if self.summary.interrupted:
+                    log.warning("interrupted: writing the results of the %d frames processed", self.summary.frames)
+                self.summary.wall_time_s = time.perf_counter() - start
+                self.system.close()
+                self._write_result_poses()
+            self._save_map()
+            self.artifacts.finish(self.system)
+            self._write_graph()
+            self._run_evaluation()
+            self._write_summary()
+            self._write_report()
         return self.summary
 
     # --- steps ------------------------------------------------------------------------------------
     def _prepare_output(self) -> None:
-        self.output_dir.mkdir(parents=True, exist_ok=True)
+        ensure_output_dir(self.output_dir)   # a clear error naming the folder, before any frame is read
         write_text_atomic(self.output_dir / "config.yaml", self.config.to_yaml())
 
-    def _run_pipeline(self) -> None:
+    def _run_pipeline(self, interrupt: DeferredInterrupt) -> None:
         from slam.report import make_strip_recorder
 
         self.dynamic_strip = make_strip_recorder(self.config, self._expected_frames())
@@ -136,6 +148,12 @@ class Pipeline:
             for frame in self.dataset:
                 if self.max_frames is not None and self.summary.frames >= self.max_frames:
                     break
+                if interrupt.requested:   # Ctrl-C during the frame before: stop here, then write everything
+                    self.summary.interrupted = True
+                    break
+                if not self.checks.accept(frame):
+                    continue
+                self.checks.observe_depth(frame)
                 t0 = time.perf_counter()
                 out = self.system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
                 self._record(out, online)
@@ -174,7 +192,9 @@ class Pipeline:
             self.summary.dynamic_flagged = stats.summary()
             self._write_dynamic_counts(stats.flagged)
         self.summary.loops, self.summary.place_recognition = self.system.place_recognition_report()
-        self.summary.skipped_files = [f"{p}: {why}" for p, why in getattr(self.dataset, "skipped", [])]
+        skipped = list(getattr(self.dataset, "skipped", [])) + self.checks.skipped
+        self.summary.skipped_files = [f"{p}: {why}" for p, why in skipped]
+        self.summary.no_depth_frames = list(self.checks.no_depth_frames)
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
         from slam.trajectory_formats import export_formats
 

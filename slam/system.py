@@ -33,6 +33,7 @@ from slam.camera import PinholeCamera
 from slam.config import SlamConfig
 from slam.frame import FeatureFrame, MapPoints
 from slam.geometry import invert, pose_distance
+from slam.input_checks import clean_depth
 from slam.timing import ModuleTimer
 
 
@@ -131,6 +132,7 @@ class System:
     # --- public -----------------------------------------------------------------------------------
     def process(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, index: Optional[int] = None) -> FrameOutput:
         index = len(self._frames) if index is None else index
+        depth = clean_depth(depth)   # NaN / inf / negative (float depth's "no measurement") -> 0 = invalid
         with self.timer.measure("extract"):
             gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
             frame = self.extractor.extract(gray, depth, index, timestamp)

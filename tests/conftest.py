@@ -19,6 +19,12 @@ from typing import Optional, Sequence
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
+from backend.local_mapping import LocalMapper
+from slam.config import load_config
+from slam.datasets import SyntheticSequence
+from slam.datasets.synthetic import look_rotation
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -59,8 +65,6 @@ def model_file(kind: str) -> Path:
 # ----------------------------------------------------------------------------------- factories
 def synthetic_sequence(n_frames: int = 40, seed: int = 0, **kwargs):
     """A generated RGB-D room (``slam.datasets.SyntheticSequence``), e.g. ``movers="people"``."""
-    from slam.datasets import SyntheticSequence
-
     return SyntheticSequence(n_frames=n_frames, seed=seed, **kwargs)
 
 
@@ -168,3 +172,135 @@ def pytest_terminal_summary(terminalreporter) -> None:
         terminalreporter.write_line(f"{title}:")
         for line in text.splitlines():
             terminalreporter.write_line(f"    {line}")
+
+
+# ------------------------------------------------------------------ a room walked twice, with drift
+# The camera walks an ellipse (1.0 x 0.8 m) in the generated room looking outwards, PERIOD frames per
+# lap. The renderer is exact, so on its own the system hardly drifts; ``inject_drift`` makes drift the
+# way it arises in practice: from frame DRIFT_FROM on, every keyframe's *new* landmarks are measured
+# DRIFT_DEG rotated about the camera (used by test_loop_closing.py and the fault table).
+PERIOD = 150
+LAPS = 2
+DRIFT_DEG = 0.3
+DRIFT_FROM, DRIFT_UNTIL = 30, LAPS * PERIOD
+
+
+def lap_pose(i: int) -> np.ndarray:
+    a = 2 * np.pi * i / PERIOD
+    T = np.eye(4)
+    T[:3, :3] = look_rotation(a, -0.05, 0.0)
+    T[:3, 3] = [1.0 * np.cos(a), 0.8 * np.sin(a), 1.4]
+    return T
+
+
+def inject_drift(monkeypatch) -> None:
+    R = Rotation.from_euler("y", DRIFT_DEG, degrees=True).as_matrix()   # camera y = vertical: a heading error
+    create = LocalMapper._create_landmarks
+
+    def drifting(self, kf_id, frame, T_wc, lm_of_kp, colors=None):
+        first = len(self.map.landmarks)
+        n = create(self, kf_id, frame, T_wc, lm_of_kp, colors)
+        if not DRIFT_FROM <= frame.index < DRIFT_UNTIL:
+            return n
+        lm, obs, cam = self.map.landmarks, self.map.observations, self.camera
+        new = np.arange(first, len(lm))
+        lm.local_xyz[new] = lm.local_xyz[new] @ R.T
+        self.map.refresh_anchored()
+        rows = np.flatnonzero((obs.kf == kf_id) & (obs.lm >= first))
+        p = lm.local_xyz[obs.lm[rows]]
+        obs.uv[rows] = np.c_[cam.fx * p[:, 0] / p[:, 2] + cam.cx, cam.fy * p[:, 1] / p[:, 2] + cam.cy]
+        obs.depth[rows] = p[:, 2]
+        return n
+
+    monkeypatch.setattr(LocalMapper, "_create_landmarks", drifting)
+
+
+def drift_room_config(loop: bool):
+    seq = SyntheticSequence(n_frames=2)
+    fx, fy, cx, cy = seq.intrinsics
+    return load_config(overrides={"camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
+                                  "camera.width": seq.width, "camera.height": seq.height,
+                                  "camera.distortion": [0.0] * 5, "loop.enabled": loop})
+
+
+
+
+# ------------------------------------------------------------------------- ROS bags written here
+# A SyntheticSequence as a ROS 1 or ROS 2 bag in the RealSense topic layout (test_rosbag.py, faults).
+RGB_TOPIC = "/camera/color/image_raw"
+DEPTH_TOPIC = "/camera/aligned_depth_to_color/image_raw"
+INFO_TOPIC = "/camera/color/camera_info"
+DEPTH_DELAY_S = 0.005  # depth stamped 5 ms after colour: association must pair them anyway
+START_S = 1_700_000_000.0
+
+
+def _image(types, header, pixels: np.ndarray, encoding: str, pad: int = 0, bigendian: bool = False):
+    """A sensor_msgs/Image of ``pixels`` (HxW or HxWxC) with ``pad`` spare bytes at the end of each row."""
+    height, width = pixels.shape[:2]
+    if bigendian:
+        pixels = pixels.astype(pixels.dtype.newbyteorder(">"))
+    rows = pixels.reshape(height, -1).view(np.uint8)
+    rows = np.concatenate([rows, np.zeros((height, pad), np.uint8)], axis=1)
+    return types["sensor_msgs/msg/Image"](header=header, height=height, width=width, encoding=encoding,
+                                          is_bigendian=int(bigendian), step=rows.shape[1], data=rows.ravel())
+
+
+def _camera_info(types, header, seq: SyntheticSequence, ros1: bool, distortion):
+    fx, fy, cx, cy = seq.intrinsics
+    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    matrices = {"D": np.asarray(distortion, np.float64),
+                "K": np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], np.float64),
+                "R": np.eye(3).ravel(), "P": np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], np.float64)}
+    fields = {(k if ros1 else k.lower()): v for k, v in matrices.items()}
+    return types["sensor_msgs/msg/CameraInfo"](header=header, height=seq.height, width=seq.width,
+                                               distortion_model="plumb_bob", binning_x=0, binning_y=0,
+                                               roi=roi, **fields)
+
+
+def write_bag(path: Path, seq: SyntheticSequence, ros_version: int = 1, depth_encoding: str = "16UC1",
+              rgb_encoding: str = "rgb8", pad: int = 0, distortion=(0.01, -0.02, 0.0, 0.0, 0.0),
+              extra_rgb: bool = True, depth_topic: str = DEPTH_TOPIC, bigendian: bool = False,
+              camera_info: bool = True) -> Path:
+    """``seq`` as a bag: colour, depth (5 ms later) and camera info, plus an unmatched colour message."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ros1 = ros_version == 1
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    types = store.types
+    if ros1:
+        from rosbags.rosbag1 import Writer
+        writer, serialize = Writer(path), store.serialize_ros1
+    else:
+        from rosbags.rosbag2 import Writer
+        writer, serialize = Writer(path, version=9), store.serialize_cdr
+
+    def header(t: float):
+        stamp = types["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
+        extra = {"seq": 0} if ros1 else {}
+        return types["std_msgs/msg/Header"](stamp=stamp, frame_id="camera", **extra)
+
+    with writer:
+        conns = {topic: writer.add_connection(topic, msgtype, typestore=store) for topic, msgtype in
+                 ((RGB_TOPIC, "sensor_msgs/msg/Image"), (depth_topic, "sensor_msgs/msg/Image"),
+                  (INFO_TOPIC, "sensor_msgs/msg/CameraInfo"))}
+
+        def put(topic, msg, t):
+            writer.write(conns[topic], int(round(t * 1e9)), serialize(msg, msg.__msgtype__))
+
+        if camera_info:
+            put(INFO_TOPIC, _camera_info(types, header(START_S), seq, ros1, distortion), START_S)
+        for frame in seq:
+            t = START_S + frame.timestamp
+            colour = frame.rgb[..., ::-1] if rgb_encoding == "rgb8" else frame.rgb
+            put(RGB_TOPIC, _image(types, header(t), np.ascontiguousarray(colour), rgb_encoding, pad), t)
+            depth = (np.round(frame.depth * 1000).astype(np.uint16) if depth_encoding in ("16UC1", "mono16")
+                     else frame.depth.astype(np.float32) if depth_encoding == "32FC1"
+                     else frame.depth.astype(np.float64))
+            td = t + DEPTH_DELAY_S
+            put(depth_topic, _image(types, header(td), depth, depth_encoding, pad, bigendian), td)
+        if extra_rgb:  # a colour frame whose depth never came: left out by the association
+            t = START_S + len(seq) / seq.fps + 1.0
+            put(RGB_TOPIC, _image(types, header(t), np.ascontiguousarray(frame.rgb), rgb_encoding), t)
+    return path
+
+

@@ -15,26 +15,21 @@ from frontend.detector import (CachedDetector, DetectorError, OnnxDetector, box_
 from frontend.dynamic.base import Detection
 from slam.dynamic_config import ClassGroups, DetectorConfig
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
-MODELS = SHARED / "models"
-BONN = SHARED / "data" / "rgbd_bonn_crowd_first480" / "rgb"
-XYZ = SHARED / "data" / "rgbd_dataset_freiburg1_xyz_first37" / "rgb"
+from conftest import BONN, DATA, XYZ, model_file, real_sequence
+
+BONN_RGB = DATA / BONN / "rgb"
+XYZ_RGB = DATA / XYZ / "rgb"
 PERSON, CHAIR, KEYBOARD = 0, 56, 66
 
 
 def _model(kind: str) -> Path:
-    path = MODELS / det_mod.MODEL_FILES[kind]
-    if not path.is_file():
-        pytest.skip(f"detector model {path} not available")
-    return path
+    return model_file("yolox" if kind == "yolox_nano" else kind)
 
 
 def _frame(folder: Path, index: int) -> np.ndarray:
     import cv2
 
-    if not folder.is_dir():
-        pytest.skip(f"shared data {folder} not available")
-    files = sorted(folder.iterdir())
+    files = sorted(real_sequence(folder.parent.name).joinpath(folder.name).iterdir())
     image = cv2.imread(str(files[index]))
     assert image is not None, files[index]
     return image
@@ -57,9 +52,10 @@ def _as_box(d: Detection) -> np.ndarray:
 # ----------------------------------------------------------------------------------- real frames
 
 
+@pytest.mark.real
 @pytest.mark.parametrize("index", [300, 350])
 def test_people_found_on_bonn_crowd(yolox, nanodet, index):
-    image = _frame(BONN, index)
+    image = _frame(BONN_RGB, index)
     h, w = image.shape[:2]
     people = [d for d in yolox.detect(image) if d.class_id == PERSON and d.score > 0.5]
     assert people, "YOLOX found no person on a frame with people walking through"
@@ -81,16 +77,18 @@ def test_people_found_on_bonn_crowd(yolox, nanodet, index):
     assert max(box_iou(_as_box(best), _as_box(d))[0, 0] for d in nano_people) > 0.8
 
 
+@pytest.mark.real
 def test_no_people_before_they_enter(yolox):
-    image = _frame(BONN, 0)
+    image = _frame(BONN_RGB, 0)
     dets = yolox.detect(image)
     assert not [d for d in dets if d.class_id == PERSON and d.score > 0.5]
     assert any(d.class_id == CHAIR and d.score > 0.5 for d in dets)   # the office chair right of centre
 
 
+@pytest.mark.real
 def test_office_desk_scene(yolox, nanodet):
     # fr1/xyz frame 0: keyboard bottom right; the only person sits behind the monitor at the top edge.
-    image = _frame(XYZ, 0)
+    image = _frame(XYZ_RGB, 0)
     for detector in (yolox, nanodet):
         dets = detector.detect(image)
         keyboards = [d for d in dets if d.class_id == KEYBOARD and d.score > 0.5]
@@ -101,8 +99,9 @@ def test_office_desk_scene(yolox, nanodet):
         assert people and all(d.y1 < 160 and 200 < (d.x0 + d.x1) / 2 < 380 for d in people), people
 
 
+@pytest.mark.real
 def test_output_contract(yolox):
-    image = _frame(BONN, 300)
+    image = _frame(BONN_RGB, 300)
     dets = yolox.detect(image, timestamp=1.0)
     scores = [d.score for d in dets]
     assert scores == sorted(scores, reverse=True)
@@ -114,9 +113,10 @@ def test_output_contract(yolox):
     assert len(filtered) == sum(d.class_id == PERSON for d in dets)
 
 
+@pytest.mark.real
 def test_build_detector_with_cache(tmp_path):
     _model("yolox_nano")
-    image = _frame(BONN, 300)
+    image = _frame(BONN_RGB, 300)
     cfg = DetectorConfig(model="yolox_nano", cache_dir=str(tmp_path))
     detector = build_detector(cfg, ClassGroups(), sequence_name="bonn crowd")
     assert isinstance(detector, CachedDetector)
@@ -215,11 +215,13 @@ def test_resolve_model_path(monkeypatch, tmp_path):
 
 
 def test_cache_path_depends_on_settings(tmp_path):
-    a = cache_path_for(tmp_path, "rgbd_bonn_crowd", DetectorConfig())
-    b = cache_path_for(tmp_path, "rgbd_bonn_crowd", DetectorConfig(score_threshold=0.5))
-    c = cache_path_for(tmp_path, "rgbd_bonn_crowd", DetectorConfig(model="nanodet"))
-    d = cache_path_for(tmp_path, "rgbd_bonn_crowd", DetectorConfig(), class_filter=[0, 56])
-    e = cache_path_for(tmp_path, "other/seq", DetectorConfig())
+    model = tmp_path / "model.onnx"   # the name holds the file's content hash: any file will do here
+    model.write_bytes(b"model bytes")
+    a = cache_path_for(tmp_path, "rgbd_bonn_crowd", DetectorConfig(), model_path=model)
+    b = cache_path_for(tmp_path, "rgbd_bonn_crowd", DetectorConfig(score_threshold=0.5), model_path=model)
+    c = cache_path_for(tmp_path, "rgbd_bonn_crowd", DetectorConfig(model="nanodet"), model_path=model)
+    d = cache_path_for(tmp_path, "rgbd_bonn_crowd", DetectorConfig(), class_filter=[0, 56], model_path=model)
+    e = cache_path_for(tmp_path, "other/seq", DetectorConfig(), model_path=model)
     assert len({a, b, c, d, e}) == 5
     assert all(p.parent == tmp_path and p.suffix == ".npz" for p in (a, b, c, d, e))
     assert "yolox_nano" in a.name and "0.300" in a.name

@@ -20,48 +20,7 @@ from slam.datasets.synthetic import look_rotation
 from slam.evaluation import ate
 from slam.system import System
 
-PERIOD = 150
-LAPS = 2
-DRIFT_DEG = 0.3
-DRIFT_FROM, DRIFT_UNTIL = 30, LAPS * PERIOD
-
-
-def lap_pose(i: int) -> np.ndarray:
-    a = 2 * np.pi * i / PERIOD
-    T = np.eye(4)
-    T[:3, :3] = look_rotation(a, -0.05, 0.0)
-    T[:3, 3] = [1.0 * np.cos(a), 0.8 * np.sin(a), 1.4]
-    return T
-
-
-def _inject_drift(monkeypatch) -> None:
-    R = Rotation.from_euler("y", DRIFT_DEG, degrees=True).as_matrix()   # camera y = vertical: a heading error
-    create = LocalMapper._create_landmarks
-
-    def drifting(self, kf_id, frame, T_wc, lm_of_kp, colors=None):
-        first = len(self.map.landmarks)
-        n = create(self, kf_id, frame, T_wc, lm_of_kp, colors)
-        if not DRIFT_FROM <= frame.index < DRIFT_UNTIL:
-            return n
-        lm, obs, cam = self.map.landmarks, self.map.observations, self.camera
-        new = np.arange(first, len(lm))
-        lm.local_xyz[new] = lm.local_xyz[new] @ R.T
-        self.map.refresh_anchored()
-        rows = np.flatnonzero((obs.kf == kf_id) & (obs.lm >= first))
-        p = lm.local_xyz[obs.lm[rows]]
-        obs.uv[rows] = np.c_[cam.fx * p[:, 0] / p[:, 2] + cam.cx, cam.fy * p[:, 1] / p[:, 2] + cam.cy]
-        obs.depth[rows] = p[:, 2]
-        return n
-
-    monkeypatch.setattr(LocalMapper, "_create_landmarks", drifting)
-
-
-def _config(loop: bool):
-    seq = SyntheticSequence(n_frames=2)
-    fx, fy, cx, cy = seq.intrinsics
-    return load_config(overrides={"camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
-                                  "camera.width": seq.width, "camera.height": seq.height,
-                                  "camera.distortion": [0.0] * 5, "loop.enabled": loop})
+from conftest import LAPS, PERIOD, drift_room_config as _config, inject_drift as _inject_drift, lap_pose
 
 
 def _walk(loop: bool) -> tuple[System, np.ndarray]:
@@ -91,6 +50,7 @@ def _ate(system: System, gt: np.ndarray) -> float:
     return ate(stamps, gt, stamps, poses).rmse
 
 
+@pytest.mark.slow
 def test_loop_found_and_ate_at_least_halved(walks):
     on, off, gt = walks
     detected = [e for e in on.loop_closer.loops if e.source == "detected"]
@@ -109,6 +69,7 @@ def test_loop_found_and_ate_at_least_halved(walks):
     assert ate_on <= 0.5 * ate_off, (ate_on, ate_off)
 
 
+@pytest.mark.slow
 def test_fused_landmarks_link_both_sides_of_the_loop(walks):
     on, _, _ = walks
     edge = next(e for e in on.loop_closer.loops if e.source == "detected")
@@ -129,6 +90,7 @@ def test_fused_landmarks_link_both_sides_of_the_loop(walks):
         assert not merged.any()
 
 
+@pytest.mark.slow
 def test_wrong_loop_is_removed_and_moves_nothing(walks):
     on, _, gt = walks
     before = on.trajectory()[1].copy()
@@ -148,6 +110,7 @@ def test_wrong_loop_is_removed_and_moves_nothing(walks):
     assert moved.max() < 0.01, moved.max()
 
 
+@pytest.mark.slow
 def test_loop_edges_are_exported_with_the_graph(walks, tmp_path):
     from backend.graph_export import export_g2o, graph_edges_from_mapper, loop_edges, mapper_keyframes
     import gtsam

@@ -7,7 +7,8 @@ pairs are formed by nearest timestamp, exactly like TUM's ``associate.py``.
 
 Real folders are often incomplete (trimmed copies that keep the full lists, a dropped frame), so listed but
 absent files are skipped with one summary warning instead of failing; unreadable files are skipped while
-iterating, each with its own warning, and recorded in ``dataset.skipped``.
+iterating, each with its own warning, and recorded in ``dataset.skipped``. Lists out of time order are
+sorted and a repeated timestamp is kept once, each with a warning naming the file and the lines.
 """
 from __future__ import annotations
 
@@ -45,6 +46,11 @@ def read_list(path: Path, columns: int) -> list[list[str]]:
     Raises DatasetError naming the file and line when a row is too short or a timestamp is not a number,
     because a silently dropped line would shift every association after it.
     """
+    return [fields for _, fields in read_numbered_list(path, columns)]
+
+
+def read_numbered_list(path: Path, columns: int) -> list[tuple[int, list[str]]]:
+    """``read_list`` with each row's line number (1-based), for messages that point at a line."""
     rows = []
     for lineno, raw in enumerate(path.read_text().splitlines(), start=1):
         line = raw.strip()
@@ -57,8 +63,38 @@ def read_list(path: Path, columns: int) -> list[list[str]]:
             float(fields[0])
         except ValueError:
             raise DatasetError(f"{path}:{lineno}: timestamp is not a number: {line!r}") from None
-        rows.append(fields[:columns])
+        rows.append((lineno, fields[:columns]))
     return rows
+
+
+def time_ordered(path: Path, rows: list[tuple[int, list[str]]]) -> list[list[str]]:
+    """The rows sorted by timestamp, a repeated timestamp kept once (its first line); each fix is warned
+    about naming the file and the lines.
+
+    Association pairs streams by time and ``frame.index`` is a frame's position in time, so a line out
+    of order must not silently become another frame's neighbour, and two frames at one instant would
+    give two poses at one timestamp (a trajectory no evaluation can associate unambiguously).
+    """
+    if not rows:
+        return []
+    lines = np.array([n for n, _ in rows])
+    t = np.array([float(fields[0]) for _, fields in rows])
+    latest = np.maximum.accumulate(t)
+    back = np.flatnonzero(t[1:] < latest[:-1]) + 1     # earlier than a line above it
+    if len(back):
+        where = [f"line {lines[i]} ({t[i]:.6f} < {latest[i - 1]:.6f} above it)" for i in back]
+        warnings.warn(f"{path}: {len(back)} line(s) out of time order, sorted by timestamp: {_name_list(where)}",
+                      DatasetWarning, stacklevel=3)
+    order = np.argsort(t, kind="stable")    # stable: among equal stamps the first line comes first
+    ts = t[order]
+    repeat = np.r_[False, ts[1:] == ts[:-1]]
+    if repeat.any():
+        first = order[np.maximum.accumulate(np.where(repeat, 0, np.arange(len(ts))))]
+        where = [f"line {lines[order[k]]} repeats {ts[k]:.6f} of line {lines[first[k]]}"
+                 for k in np.flatnonzero(repeat)]
+        warnings.warn(f"{path}: {int(repeat.sum())} repeated timestamp(s) dropped (the first line is kept): "
+                      f"{_name_list(where)}", DatasetWarning, stacklevel=3)
+    return [rows[i][1] for i in order[~repeat]]
 
 
 def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt: float = 0.02,
@@ -231,7 +267,7 @@ class TumDataset:
         """
         assoc = self.root / "associations.txt"
         if assoc.is_file():
-            rows = read_list(assoc, 4)
+            rows = time_ordered(assoc, read_numbered_list(assoc, 4))
             self.association_source = "associations.txt"
             self.unmatched_rgb = 0
             self._listed = ([r[1] for r in rows], [r[3] for r in rows])
@@ -240,7 +276,9 @@ class TumDataset:
         depth_txt = self.root / "depth.txt"
         if not depth_txt.is_file():
             raise DatasetError(f"{self.root} has rgb.txt but no depth.txt (expected both, or associations.txt)")
-        rgb_rows, depth_rows = read_list(self.root / "rgb.txt", 2), read_list(depth_txt, 2)
+        rgb_txt = self.root / "rgb.txt"
+        rgb_rows = time_ordered(rgb_txt, read_numbered_list(rgb_txt, 2))
+        depth_rows = time_ordered(depth_txt, read_numbered_list(depth_txt, 2))
         self._listed = ([r[1] for r in rgb_rows], [r[1] for r in depth_rows])
         t_rgb = np.array([float(r[0]) for r in rgb_rows])
         t_depth = np.array([float(r[0]) for r in depth_rows])
@@ -307,7 +345,8 @@ class TumDataset:
             desc = "unreadable" if raw is None else f"{raw.dtype} with shape {raw.shape}"
             return None, f"depth image is not a 16-bit single-channel PNG ({desc})"
         if raw.shape != rgb.shape[:2]:
-            return None, f"depth size {raw.shape} differs from colour size {rgb.shape[:2]}"
+            return None, (f"depth image is {raw.shape[1]}x{raw.shape[0]} but its colour image {self._rgb[i].name} is "
+                          f"{rgb.shape[1]}x{rgb.shape[0]} (they must be registered pixel to pixel)")
         depth = raw.astype(np.float32) / np.float32(self.depth_scale)
         frame = RGBDFrame(index=i, timestamp=float(self._t_rgb[i]), rgb=rgb, depth=depth,
                           rgb_path=self._rgb[i], depth_path=self._depth[i])
