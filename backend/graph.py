@@ -27,8 +27,10 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
+from slam.core.errors import RuntimeFailure
 
-class BackendError(RuntimeError):
+
+class BackendError(RuntimeFailure, RuntimeError):
     """The graph cannot accept a request (unknown variable, singular system, ...)."""
 
 

@@ -56,8 +56,8 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from slam.atomic_io import write_text_atomic
-from slam.geometry import invert
+from slam.core.atomic_io import write_text_atomic
+from slam.core.geometry import invert
 
 EDGE_KINDS = ("odometry", "covisibility", "loop")
 JSON_FORMAT = "dynslam-graph"

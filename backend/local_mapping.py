@@ -18,10 +18,10 @@ import numpy as np
 
 from backend.graph import BackendParams, FactorGraphBackend, StereoCalibration
 from backend.map_store import SlamMap
-from slam.camera import PinholeCamera
-from slam.config import BackendConfig, KeyframeConfig
-from slam.frame import FeatureFrame, MapPoints
-from slam.geometry import invert
+from slam.core.camera import PinholeCamera
+from slam.core.config import BackendConfig, KeyframeConfig
+from slam.core.frame import FeatureFrame, MapPoints
+from slam.core.geometry import invert
 
 
 @dataclass

@@ -29,7 +29,7 @@ from backend.landmark_fusion import fuse_loop_landmarks
 from backend.local_mapping import LocalMapper
 from backend.loop_detection import LoopCandidate, LoopDetector
 from backend.place_recognition import KeyframeIndex, Vocabulary
-from slam.loop_config import LoopConfig
+from slam.core.loop_config import LoopConfig
 
 
 @dataclass

@@ -44,7 +44,7 @@ import numpy as np
 from backend.map_store import SlamMap
 from backend.place_recognition import KeyframeIndex, Vocabulary, score
 from backend.pnp_verification import PnpParams, solve_pnp
-from slam.geometry import invert
+from slam.core.geometry import invert
 
 __all__ = ["LoopCandidate", "LoopDetector"]
 

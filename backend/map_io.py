@@ -62,8 +62,9 @@ import numpy as np
 from backend.map_io_places import PlaceData, place_arrays, read_place_arrays
 from backend.map_store import KeyframeRecord, SlamMap, landmark_table, observation_table
 from backend.place_recognition import KeyframeIndex
-from slam.atomic_io import write_npz_atomic
-from slam.frame import FeatureFrame
+from slam.core.atomic_io import write_npz_atomic
+from slam.core.frame import FeatureFrame
+from slam.core.errors import DynslamError
 
 FORMAT_NAME = "dynslam-map"
 FORMAT_VERSION = 2
@@ -75,11 +76,11 @@ _FEATURE_FIELDS = ("uv_raw", "uv", "octaves", "descriptors", "depths", "u_right"
 _CAMERA_CHECKED = ("fx", "fy", "cx", "cy", "width", "height")
 
 
-class MapFormatError(ValueError):
+class MapFormatError(DynslamError, ValueError):
     """A map file that cannot be read as a dynslam map (names the path and what is wrong)."""
 
 
-class MapCameraError(ValueError):
+class MapCameraError(DynslamError, ValueError):
     """A map built with a different camera than the one of the run that wants to use it."""
 
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.frame import FeatureFrame, MapPoints
+from slam.core.frame import FeatureFrame, MapPoints
 
 
 class GrowableTable:

@@ -48,7 +48,8 @@ from typing import Iterable, Sequence, Union
 import numpy as np
 
 from backend.binary_clustering import DESCRIPTOR_BYTES, cluster_level, hamming, row_distances
-from slam.atomic_io import write_npz_atomic
+from slam.core.atomic_io import write_npz_atomic
+from slam.core.errors import DynslamError
 
 __all__ = ["VOCABULARY_VERSION", "VocabularyError", "Vocabulary", "BowVector", "score", "hamming",
            "KeyframeIndex"]
@@ -57,7 +58,7 @@ VOCABULARY_VERSION = 1
 _FORMAT = "dynslam-bow-vocabulary"
 
 
-class VocabularyError(ValueError):
+class VocabularyError(DynslamError, ValueError):
     """A vocabulary file cannot be used (missing, truncated, corrupt, inconsistent, wrong version)."""
 
 

@@ -20,7 +20,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from slam.frame import MapPoints
+from slam.core.frame import MapPoints
 
 
 @dataclass

@@ -17,8 +17,8 @@ import numpy as np
 from backend.map_store import SlamMap
 from backend.place_recognition import KeyframeIndex
 from backend.pnp_verification import PnpParams, solve_pnp
-from slam.frame import FeatureFrame
-from slam.geometry import invert
+from slam.core.frame import FeatureFrame
+from slam.core.geometry import invert
 
 
 @dataclass

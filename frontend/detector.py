@@ -34,8 +34,9 @@ import numpy as np
 from frontend.detector_boxes import boxes_from_input, letterbox_params, nms_per_class
 from frontend.detector_boxes import box_iou, boxes_to_input, nms_numpy  # noqa: F401  (re-exported)
 from frontend.dynamic.base import Detection, Detector
-from slam.atomic_io import write_npz_atomic
-from slam.dynamic_config import ClassGroups, DetectorConfig
+from slam.core.atomic_io import write_npz_atomic
+from slam.core.dynamic_config import ClassGroups, DetectorConfig
+from slam.core.errors import DynslamError
 
 ENV_MODEL = "DYNSLAM_DETECTOR_MODEL"
 MODEL_FILES = {"yolox_nano": "yolox_nano_416.onnx", "nanodet": "nanodet_m_320.onnx"}
@@ -47,7 +48,7 @@ _NANODET_BINS = 8
 _YOLOX_PAD = 114.0
 
 
-class DetectorError(RuntimeError):
+class DetectorError(DynslamError, RuntimeError):
     """The detector model cannot be loaded or run (missing/corrupt file, wrong model kind)."""
 
 

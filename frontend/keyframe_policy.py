@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.config import KeyframeConfig
-from slam.frame import FeatureFrame
+from slam.core.config import KeyframeConfig
+from slam.core.frame import FeatureFrame
 
 
 @dataclass

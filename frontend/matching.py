@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slam.camera import PinholeCamera
-from slam.frame import FeatureFrame, MapPoints
+from slam.core.camera import PinholeCamera
+from slam.core.frame import FeatureFrame, MapPoints
 
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint16)
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from slam.camera import PinholeCamera
-from slam.config import OrbConfig
-from slam.frame import FeatureFrame
+from slam.core.camera import PinholeCamera
+from slam.core.config import OrbConfig
+from slam.core.frame import FeatureFrame
 
 
 def features_per_level(n_features: int, scale_factor: float, n_levels: int) -> np.ndarray:

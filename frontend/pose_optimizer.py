@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.geometry import orthonormalize, se3_exp
+from slam.core.geometry import orthonormalize, se3_exp
 
 
 @dataclass

@@ -20,10 +20,10 @@ import numpy as np
 
 from frontend.matching import match_brute_force, search_by_projection
 from frontend.pose_optimizer import PoseObservations, optimize_pose
-from slam.camera import PinholeCamera
-from slam.config import TrackingConfig
-from slam.frame import FeatureFrame, MapPoints
-from slam.geometry import invert, orthonormalize
+from slam.core.camera import PinholeCamera
+from slam.core.config import TrackingConfig
+from slam.core.frame import FeatureFrame, MapPoints
+from slam.core.geometry import invert, orthonormalize
 
 
 class TrackingState(Enum):

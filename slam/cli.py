@@ -1,8 +1,9 @@
 """``dynslam`` command line: run, demo, eval, export-trajectory, export, vocabulary, download, config.
 
 The CLI only parses arguments, resolves the config and calls the library; heavy imports happen
-inside the commands so ``dynslam --help`` stays instant. Expected failures (bad path, bad config,
-unreadable trajectory) print one clear line and exit with status 2.
+inside the commands so ``dynslam --help`` stays instant. Every deliberate failure is a
+``slam.core.errors.DynslamError``: one clear line and its exit status (2 for a bad path, config value
+or file, 1 for a failure while running); Ctrl-C gives 130.
 """
 from __future__ import annotations
 
@@ -15,17 +16,17 @@ import warnings
 from pathlib import Path
 from typing import Optional, Sequence
 
-EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130   # 128 + SIGINT, what a shell reports for a Ctrl-C'd command
+from slam.core.errors import EXIT_INTERRUPTED, EXIT_USAGE   # the CLI's exit codes (light: --help stays instant)
+
 DEMO_MOVERS = ("none", "people", "boxes", "crowd", "drag")   # = slam.datasets.synthetic_movers.MOVER_PRESETS
 DEMO_ORACLE_MARGIN_PX = 8   # the generated movers' true boxes, widened as a detector's boxes are
-TRAJECTORY_FORMAT_NAMES = ("tum", "kitti", "euroc")   # = slam.config.TRAJECTORY_FORMATS (not imported: --help stays light)
+TRAJECTORY_FORMAT_NAMES = ("tum", "kitti", "euroc")   # = slam.core.config.TRAJECTORY_FORMATS (not imported: --help stays light)
 
 
 def _parse_overrides(pairs: Sequence[str]) -> dict:
     import yaml
 
-    from slam.config import ConfigError
+    from slam.core.config import ConfigError
 
     overrides = {}
     for pair in pairs:
@@ -40,7 +41,7 @@ def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str]
     """Defaults, then the camera of the dataset (a bag's CameraInfo, an image folder's intrinsics.yaml,
     a TUM folder's camera.yaml, else a preset guessed from the name), then the user's files in order,
     then --set overrides."""
-    from slam.config import SlamConfig, apply_overrides, apply_yaml
+    from slam.core.config import SlamConfig, apply_overrides, apply_yaml
     from slam.datasets import guess_camera, read_camera
 
     config = SlamConfig()
@@ -75,15 +76,15 @@ def _default_output(name: str) -> Path:
 
 def _progress_printer(total: int, quiet: bool):
     """A one-line bar redrawn in place on a terminal, a plain line every 50 frames otherwise."""
-    from slam.progress import ProgressPrinter
+    from slam.run.progress import ProgressPrinter
 
     return ProgressPrinter(total, sys.stderr, quiet=quiet)
 
 
 def cmd_run(args) -> int:
-    from slam.atomic_io import ensure_output_dir
+    from slam.core.atomic_io import ensure_output_dir
     from slam.datasets import DatasetError, is_rosbag, open_dataset
-    from slam.pipeline import Pipeline
+    from slam.run.pipeline import Pipeline
 
     root = Path(args.dataset)
     expected = ("a TUM RGB-D folder with rgb.txt, depth.txt, rgb/ and depth/; a ROS .bag file or ROS 2 bag "
@@ -118,7 +119,7 @@ def cmd_run(args) -> int:
 
 
 def _blackout(dataset, spec: str):
-    from slam.config import ConfigError
+    from slam.core.config import ConfigError
     from slam.datasets.faults import Blackout
 
     try:
@@ -131,8 +132,8 @@ def _blackout(dataset, spec: str):
 def cmd_demo(args) -> int:
     from frontend.dynamic.oracle import synthetic_oracle
     from slam.datasets import SyntheticSequence
-    from slam.atomic_io import ensure_output_dir
-    from slam.pipeline import Pipeline
+    from slam.core.atomic_io import ensure_output_dir
+    from slam.run.pipeline import Pipeline
 
     sequence = SyntheticSequence(n_frames=args.frames, seed=args.seed, movers=args.movers)
     fx, fy, cx, cy = sequence.intrinsics
@@ -155,7 +156,7 @@ def cmd_demo(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from slam.evaluation import evaluate_files, format_report
+    from slam.run.evaluation import evaluate_files, format_report
 
     report = evaluate_files(args.groundtruth, args.estimate, args.max_dt)
     print(json.dumps(report.to_dict(), indent=2) if args.json else format_report(report))
@@ -164,7 +165,7 @@ def cmd_eval(args) -> int:
 
 def cmd_export_trajectory(args) -> int:
     """Write a results folder's trajectory in KITTI or EuRoC beside its TUM file; prints the files."""
-    from slam.trajectory_formats import export_trajectory, trajectory_kind
+    from slam.run.trajectory_formats import export_trajectory, trajectory_kind
 
     for path in export_trajectory(args.results_dir, args.format, trajectory_kind(args.online, args.keyframes)):
         print(path)
@@ -178,8 +179,8 @@ def cmd_vocabulary(args) -> int:
 
     from backend.place_recognition import Vocabulary
     from frontend.orb_extractor import OrbExtractor
-    from slam.camera import PinholeCamera
-    from slam.config import SlamConfig
+    from slam.core.camera import PinholeCamera
+    from slam.core.config import SlamConfig
     from slam.datasets import DatasetError
 
     paths = sorted(p for folder in args.images for p in Path(folder).rglob("*")
@@ -204,7 +205,7 @@ def cmd_vocabulary(args) -> int:
 
 def cmd_download(args) -> int:
     """Fetch, verify and unpack one official TUM or Bonn sequence; prints the folder it made."""
-    from slam.download import download_sequence, parse_checksum
+    from slam.run.download import download_sequence, parse_checksum
 
     checksum = parse_checksum(args.checksum) if args.checksum else None
     folder = download_sequence(args.kind, args.sequence, args.output, base_url=args.base_url,
@@ -216,8 +217,8 @@ def cmd_download(args) -> int:
 
 def cmd_export(args) -> int:
     """Sparse (landmarks) and dense (TSDF mesh + cloud) maps of a finished run, without re-running SLAM."""
-    from slam.config import ConfigError
-    from slam.map_export import ExportRequest, export_maps
+    from slam.core.config import ConfigError
+    from slam.run.map_export import ExportRequest, export_maps
 
     if (args.results is None) == (args.map is None):
         raise ConfigError("export needs a results folder or --map FILE (one of them)")
@@ -354,20 +355,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="dynslam: %(message)s")
     warnings.simplefilter("default")
     warnings.formatwarning = lambda message, category, *_args, **_kw: f"dynslam: warning: {message}\n"
-    from slam.config import ConfigError
-    from slam.datasets import DatasetError
-    from slam.download import DownloadError
-    from slam.evaluation import EvaluationError
-    from slam.trajectory import TrajectoryFormatError
-    from frontend.detector import DetectorError
-    from backend.map_io import MapCameraError, MapFormatError
-    from slam.map_export import MapExportError
-    from slam.atomic_io import OutputDirError
+    from slam.core.errors import DynslamError
 
     try:
         return args.func(args)
-    except (ConfigError, DatasetError, DownloadError, EvaluationError, TrajectoryFormatError, DetectorError,
-            FileNotFoundError, MapFormatError, MapCameraError, MapExportError, OutputDirError) as exc:
+    except DynslamError as exc:   # every deliberate error: one line, its exit status (no traceback)
+        print(f"dynslam {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except FileNotFoundError as exc:
         print(f"dynslam {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:   # Ctrl-C before the run started (a run itself stops cleanly, see Pipeline)

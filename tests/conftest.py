@@ -22,7 +22,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from backend.local_mapping import LocalMapper
-from slam.config import load_config
+from slam.core.config import load_config
 from slam.datasets import SyntheticSequence
 from slam.datasets.synthetic import look_rotation
 
@@ -70,7 +70,7 @@ def synthetic_sequence(n_frames: int = 40, seed: int = 0, **kwargs):
 
 def synthetic_config(sequence, preset: Optional[str] = None, **overrides):
     """The default config with ``sequence``'s camera, then ``preset``, then dotted overrides."""
-    from slam.dynamic_eval import synthetic_config as make
+    from slam.run.dynamic_eval import synthetic_config as make
 
     return make(sequence, preset=preset, **overrides)
 
@@ -94,7 +94,7 @@ def tum_pose_lines(path: Path) -> list[str]:
 
 def frame_errors(results: Path, groundtruth: Path) -> np.ndarray:
     """Per-frame translation error (m) of a run's trajectory after the ATE alignment."""
-    from slam.evaluation import evaluate_files
+    from slam.run.evaluation import evaluate_files
 
     report = evaluate_files(groundtruth, Path(results) / "trajectory.txt", 0.02)
     return np.asarray(report.ate.errors)

@@ -13,11 +13,11 @@ import pytest
 
 from backend.graph import BackendError, BackendParams, FactorGraphBackend, StereoCalibration
 from backend.local_mapping import LocalMapper
-from slam.camera import PinholeCamera
-from slam.config import BackendConfig, KeyframeConfig
+from slam.core.camera import PinholeCamera
+from slam.core.config import BackendConfig, KeyframeConfig
 from slam.datasets import SyntheticSequence
-from slam.frame import FeatureFrame
-from slam.geometry import invert, make_pose, pose_distance, se3_exp, so3_exp, transform_points
+from slam.core.frame import FeatureFrame
+from slam.core.geometry import invert, make_pose, pose_distance, se3_exp, so3_exp, transform_points
 
 FX, FY, CX, CY, W, H = 525.0, 525.0, 319.5, 239.5, 640, 480
 BF = 40.0  # fx * baseline, as CameraConfig.bf

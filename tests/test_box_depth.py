@@ -6,9 +6,9 @@ import numpy as np
 from frontend.dynamic.base import Detection, DynamicContext
 from frontend.dynamic.box_depth import (BoxDepthMethod, eq8_filter, flood_fill, match_descriptors, seed_points,
                                         segment_box)
-from slam.camera import PinholeCamera
-from slam.dynamic_config import BoxDepthConfig, ClassGroups
-from slam.frame import FeatureFrame
+from slam.core.camera import PinholeCamera
+from slam.core.dynamic_config import BoxDepthConfig, ClassGroups
+from slam.core.frame import FeatureFrame
 
 CAM = PinholeCamera(525, 525, 319.5, 239.5, 640, 480)
 H, W = 480, 640

@@ -14,10 +14,10 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from slam.cli import main
-from slam.config import SlamConfig, load_config
+from slam.core.config import SlamConfig, load_config
 from slam.datasets import SyntheticSequence, write_tum_layout
-from slam.evaluation import evaluate_files
-from slam.trajectory import read_tum, write_tum
+from slam.run.evaluation import evaluate_files
+from slam.run.trajectory import read_tum, write_tum
 
 RESULT_FILES = ("config.yaml", "trajectory.txt", "trajectory_online.txt", "keyframes.txt", "groundtruth.txt",
                 "summary.json", "evaluation.json")

@@ -1,4 +1,4 @@
-"""Tests for slam.config: defaults, presets, and error messages that name the file and the dotted key."""
+"""Tests for slam.core.config: defaults, presets, and error messages that name the file and the dotted key."""
 from __future__ import annotations
 
 import dataclasses
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from slam.config import (CONFIG_DIR, ConfigError, SlamConfig, apply_overrides, default_config_yaml,
+from slam.core.config import (CONFIG_DIR, ConfigError, SlamConfig, apply_overrides, default_config_yaml,
                          load_config, resolve_config_path, validate)
 
 # Published intrinsics (TUM RGB-D benchmark "camera calibration" page; Bonn RGB-D Dynamic Dataset page).

@@ -14,9 +14,9 @@ import pytest
 from frontend.dynamic.base import DynamicContext
 from frontend.dynamic.cpr import (CprMethod, build_cloud, cluster, mad_threshold, mls_smooth, refine_mask,
                                   sample_grid, soft_probability, sub_poses, voxel_filter, _smallest_eigvec)
-from slam.camera import PinholeCamera
-from slam.dynamic_config import CprConfig
-from slam.frame import FeatureFrame
+from slam.core.camera import PinholeCamera
+from slam.core.dynamic_config import CprConfig
+from slam.core.frame import FeatureFrame
 
 W, H = 640, 480
 CAMERA = PinholeCamera(525.0, 525.0, 319.5, 239.5, W, H)
@@ -312,7 +312,7 @@ def test_boxes_of_the_shared_synthetic_sequence():
     import cv2
 
     from slam.datasets import SyntheticSequence
-    from slam.geometry import invert
+    from slam.core.geometry import invert
 
     try:
         seq = SyntheticSequence(n_frames=120, movers="boxes", seed=0)

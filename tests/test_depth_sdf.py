@@ -5,9 +5,9 @@ import numpy as np
 
 from frontend.dynamic.base import Detection, DynamicContext
 from frontend.dynamic.depth_sdf import DepthSdfMethod, band_half_width, fit_depth_layer, neg_log_likelihood
-from slam.camera import PinholeCamera
-from slam.dynamic_config import ClassGroups, DepthSdfConfig
-from slam.frame import FeatureFrame
+from slam.core.camera import PinholeCamera
+from slam.core.dynamic_config import ClassGroups, DepthSdfConfig
+from slam.core.frame import FeatureFrame
 
 CAM = PinholeCamera(525, 525, 319.5, 239.5, 640, 480)
 H, W = 480, 640

@@ -13,7 +13,7 @@ from frontend.detector import (CachedDetector, DetectorError, OnnxDetector, box_
                                boxes_to_input, build_detector, cache_path_for, class_filter_of,
                                letterbox_params, nms_numpy, nms_per_class, resolve_model_path)
 from frontend.dynamic.base import Detection
-from slam.dynamic_config import ClassGroups, DetectorConfig
+from slam.core.dynamic_config import ClassGroups, DetectorConfig
 
 from conftest import BONN, DATA, XYZ, model_file, real_sequence
 

@@ -15,7 +15,7 @@ import pytest
 
 from slam.cli import main
 from slam.datasets import SyntheticSequence, TumDataset, write_tum_layout
-from slam.download import DownloadError, archive_spec, download_sequence, unpack
+from slam.run.download import DownloadError, archive_spec, download_sequence, unpack
 
 TUM_FOLDER = "rgbd_dataset_freiburg1_tiny"
 BONN_FOLDER = "rgbd_bonn_tiny"
@@ -262,3 +262,15 @@ def test_cli_download_failure_is_one_line_exit_2(server, tmp_path, capsys, monke
     _, err = capsys.readouterr()
     assert code == 2
     assert "dynslam download: error:" in err and "HTTP 404" in err and "Traceback" not in err
+
+
+def test_cli_network_failure_is_exit_1(tmp_path, capsys, monkeypatch):
+    """Nothing listens on the port: a failure while running (try again later), not a usage error."""
+    monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)
+    with socket.socket() as probe:   # a free loopback port, closed again: connections are refused
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    code = main(["download", "tum", "freiburg1_xyz", "-o", str(tmp_path), "--base-url", f"http://127.0.0.1:{port}"])
+    _, err = capsys.readouterr()
+    assert code == 1
+    assert "dynslam download: error: cannot reach" in err and "Traceback" not in err

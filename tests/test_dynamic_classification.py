@@ -13,7 +13,7 @@ import pytest
 
 from frontend.dynamic.oracle import precision_recall
 from slam.datasets import SyntheticSequence
-from slam.dynamic_eval import boundary_band, classify_synthetic, synthetic_config
+from slam.run.dynamic_eval import boundary_band, classify_synthetic, synthetic_config
 
 from conftest import report_figures
 

@@ -1,4 +1,4 @@
-"""Tests for slam.evaluation: analytic cases, error messages, and agreement with evo."""
+"""Tests for slam.run.evaluation: analytic cases, error messages, and agreement with evo."""
 from __future__ import annotations
 
 import json
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from slam.evaluation import (
+from slam.run.evaluation import (
     EvaluationError,
     associate,
     ate,
@@ -18,7 +18,7 @@ from slam.evaluation import (
     rpe_seconds,
     umeyama_alignment,
 )
-from slam.trajectory import TrajectoryFormatError, read_tum, write_tum
+from slam.run.trajectory import TrajectoryFormatError, read_tum, write_tum
 
 from conftest import XYZ, real_sequence
 

@@ -30,14 +30,14 @@ from conftest import (PERIOD, REPO, RPY, drift_room_config, inject_drift, lap_po
                       real_sequence, run_dynslam, synthetic_config, synthetic_sequence, write_bag)
 from slam.cli import main, resolve_run_config
 from slam.datasets import DatasetWarning, TumDataset, write_tum_layout
-from slam.evaluation import ate
-from slam.pipeline import Pipeline
-from slam.system import System
-from slam.trajectory import read_tum
+from slam.run.evaluation import ate
+from slam.run.pipeline import Pipeline
+from slam.runtime.system import System
+from slam.run.trajectory import read_tum
 
 TUM_FRAMES = 24
 LOST_LINE = re.compile(r"^# (\d+\.\d+) LOST$")
-TEMP_NAME = re.compile(r"^\..+\.tmp$")     # slam.atomic_io's temporary files
+TEMP_NAME = re.compile(r"^\..+\.tmp$")     # slam.core.atomic_io's temporary files
 
 
 @pytest.fixture(autouse=True)
@@ -594,7 +594,7 @@ def _one_byte_changed(src: Path, dst: Path) -> Path:
 def test_detection_cache_is_keyed_by_the_model_files_content(tmp_path, monkeypatch):
     import frontend.detector as detector_module
     from frontend.detector import CachedDetector, build_detector, cache_path_for, model_digest
-    from slam.dynamic_config import ClassGroups, DetectorConfig
+    from slam.core.dynamic_config import ClassGroups, DetectorConfig
 
     yolox, nanodet = model_file("yolox"), model_file("nanodet")
     copy = Path(shutil.copy(yolox, tmp_path / "yolox_copy.onnx"))

@@ -14,9 +14,9 @@ import pytest
 from frontend.dynamic.base import Detection, DynamicContext, keypoints_in_mask
 from frontend.dynamic.flow_epipolar import (FlowEpipolarMethod, bayes_posterior, cell_coverage,
                                             epipolar_distance, grid_edges, threshold_to_half)
-from slam.camera import PinholeCamera
-from slam.dynamic_config import ClassGroups, FlowEpipolarConfig
-from slam.frame import FeatureFrame
+from slam.core.camera import PinholeCamera
+from slam.core.dynamic_config import ClassGroups, FlowEpipolarConfig
+from slam.core.frame import FeatureFrame
 
 W, H = 320, 240
 FX = 400.0

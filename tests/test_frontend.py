@@ -9,12 +9,12 @@ from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_
 from frontend.matching import hamming_pairs, match_brute_force, search_by_projection
 from frontend.orb_extractor import OrbExtractor, features_per_level
 from frontend.tracker import TrackingState
-from slam.camera import PinholeCamera
-from slam.config import KeyframeConfig, load_config
+from slam.core.camera import PinholeCamera
+from slam.core.config import KeyframeConfig, load_config
 from slam.datasets import SyntheticSequence
-from slam.frame import FeatureFrame, MapPoints
-from slam.geometry import invert, so3_log, transform_points
-from slam.system import System
+from slam.core.frame import FeatureFrame, MapPoints
+from slam.core.geometry import invert, so3_log, transform_points
+from slam.runtime.system import System
 
 N_FRAMES = 30
 
@@ -403,7 +403,7 @@ def test_all_dynamic_first_frame_does_not_initialise(sequence, config):
 
 def test_search_by_projection_when_every_candidate_fails_the_level_check():
     """Candidates inside the radius but all on distant pyramid levels: no match, no crash."""
-    from slam.camera import PinholeCamera
+    from slam.core.camera import PinholeCamera
     from frontend.matching import search_by_projection
 
     camera = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
@@ -416,7 +416,7 @@ def test_search_by_projection_when_every_candidate_fails_the_level_check():
 
 
 def test_search_by_projection_when_no_candidate_is_close_enough_in_descriptor_space():
-    from slam.camera import PinholeCamera
+    from slam.core.camera import PinholeCamera
     from frontend.matching import search_by_projection
 
     camera = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)

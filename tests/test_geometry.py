@@ -1,4 +1,4 @@
-"""Tests for slam.geometry (SO(3)/SE(3) maps, inverses, orthonormalisation) and slam.camera."""
+"""Tests for slam.core.geometry (SO(3)/SE(3) maps, inverses, orthonormalisation) and slam.core.camera."""
 from __future__ import annotations
 
 import cv2
@@ -7,9 +7,9 @@ import pytest
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from slam.camera import PinholeCamera
-from slam.config import load_config
-from slam.geometry import (invert, make_pose, orthonormalize, pose_distance, rotation_angle_deg, se3_exp,
+from slam.core.camera import PinholeCamera
+from slam.core.config import load_config
+from slam.core.geometry import (invert, make_pose, orthonormalize, pose_distance, rotation_angle_deg, se3_exp,
                            skew, so3_exp, so3_log, transform_points)
 
 

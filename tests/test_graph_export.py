@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 import backend.graph_export as ge
 from backend.graph_export import (GraphEdge, export_g2o, export_json, graph_edges_from_mapper, load_json,
                                   mapper_keyframes)
-from slam.geometry import invert
+from slam.core.geometry import invert
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:
@@ -178,9 +178,9 @@ def test_graph_edges_from_mapper_weights():
 
 
 def test_system_graph_exports_to_gtsam(tmp_path):
-    from slam.config import load_config
+    from slam.core.config import load_config
     from slam.datasets import SyntheticSequence
-    from slam.system import System
+    from slam.runtime.system import System
 
     config = load_config()
     system = System(config)

@@ -16,9 +16,9 @@ import pytest
 
 from slam.cli import resolve_run_config
 from slam.datasets import DatasetWarning, TumDataset
-from slam.evaluation import ate, evaluate_files
-from slam.pipeline import Pipeline
-from slam.system import System
+from slam.run.evaluation import ate, evaluate_files
+from slam.run.pipeline import Pipeline
+from slam.runtime.system import System
 
 from conftest import DESK, RPY, XYZ, real_sequence as real, tum_pose_lines as pose_lines
 

@@ -14,11 +14,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from backend.local_mapping import LocalMapper
-from slam.config import load_config
+from slam.core.config import load_config
 from slam.datasets import SyntheticSequence
 from slam.datasets.synthetic import look_rotation
-from slam.evaluation import ate
-from slam.system import System
+from slam.run.evaluation import ate
+from slam.runtime.system import System
 
 from conftest import LAPS, PERIOD, drift_room_config as _config, inject_drift as _inject_drift, lap_pose, report_figures
 

@@ -19,10 +19,10 @@ import pytest
 
 from backend.loop_detection import LoopCandidate, LoopDetector
 from backend.place_recognition import Vocabulary
-from slam.config import load_config
+from slam.core.config import load_config
 from slam.datasets import SyntheticSequence
 from slam.datasets.synthetic import look_rotation
-from slam.system import System
+from slam.runtime.system import System
 
 PERIOD = 90         # frames per full turn (4 deg per frame)
 EXTRA = 30          # frames of the second pass over the start

@@ -18,15 +18,15 @@ o3d = pytest.importorskip("open3d")
 
 from backend.map_io import load_map  # noqa: E402
 from frontend.dynamic.oracle import synthetic_oracle  # noqa: E402
-from slam import pipeline as pipeline_module  # noqa: E402
+from slam.run import pipeline as pipeline_module  # noqa: E402
 from slam.cli import main  # noqa: E402
-from slam.config import ConfigError, load_config  # noqa: E402
+from slam.core.config import ConfigError, load_config  # noqa: E402
 from slam.datasets import SyntheticSequence, TumDataset  # noqa: E402
-from slam.dynamic_eval import synthetic_config  # noqa: E402
-from slam.map_export import (ExportRequest, dynamic_colors, dynamic_evidence, ghost_fraction,  # noqa: E402
+from slam.run.dynamic_eval import synthetic_config  # noqa: E402
+from slam.run.map_export import (ExportRequest, dynamic_colors, dynamic_evidence, ghost_fraction,  # noqa: E402
                              load_keyframe_set)
-from slam.trajectory import read_tum  # noqa: E402
-from slam.tsdf import BYTES_PER_VOXEL, VolumeSizeWarning, fuse_keyframes, plan_grid  # noqa: E402
+from slam.run.trajectory import read_tum  # noqa: E402
+from slam.run.tsdf import BYTES_PER_VOXEL, VolumeSizeWarning, fuse_keyframes, plan_grid  # noqa: E402
 
 from conftest import report_figures  # noqa: E402
 

@@ -10,10 +10,10 @@ import pytest
 from backend.map_io import (MapCameraError, MapFormatError, camera_info_from_config, check_camera_compatible,
                             load_map, save_map)
 from slam.cli import main, resolve_run_config
-from slam.config import load_config
+from slam.core.config import load_config
 from slam.datasets import SyntheticSequence, TumDataset
-from slam.evaluation import ate
-from slam.system import System
+from slam.run.evaluation import ate
+from slam.runtime.system import System
 
 N_FRAMES = 40
 from conftest import XYZ, real_sequence

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from frontend.pose_optimizer import PoseObservations, _residuals_and_jacobians, optimize_pose
-from slam.camera import PinholeCamera
-from slam.geometry import invert, se3_exp, so3_log, transform_points
+from slam.core.camera import PinholeCamera
+from slam.core.geometry import invert, se3_exp, so3_log, transform_points
 
 CAMERA = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
 

@@ -1,4 +1,4 @@
-"""The run progress display (slam.progress) on a terminal and in a log, with a fake stream and clock."""
+"""The run progress display (slam.run.progress) on a terminal and in a log, with a fake stream and clock."""
 from __future__ import annotations
 
 import io
@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from frontend.tracker import TrackingState
-from slam.progress import ProgressPrinter, format_bar
+from slam.run.progress import ProgressPrinter, format_bar
 
 
 class FakeTerminal(io.StringIO):

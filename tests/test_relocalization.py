@@ -6,9 +6,9 @@ import pytest
 
 from backend.map_io import MapFormatError, load_map
 from backend.place_recognition import DEFAULT_VOCABULARY, Vocabulary
-from slam.config import load_config
+from slam.core.config import load_config
 from slam.datasets import SyntheticSequence
-from slam.system import System
+from slam.runtime.system import System
 
 MAPPED = 80          # frames mapped before the camera is "kidnapped"
 BLANK = 3            # frames with nothing in them (tracking is lost)

@@ -1,4 +1,4 @@
-"""The run report (slam.report): images exist, have their sizes and content, the page shows the
+"""The run report (slam.run.report): images exist, have their sizes and content, the page shows the
 summary's numbers, the plotted series are the evaluated ones, and a report never breaks a run."""
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from slam.cli import main
-from slam.evaluation import evaluate_files
-from slam.report import DynamicStripRecorder, NullStripRecorder, make_strip_recorder, render_index, write_report
-from slam.report_plots import FIGURE_SIZE_PX
-from slam.config import SlamConfig
+from slam.run.evaluation import evaluate_files
+from slam.run.report import DynamicStripRecorder, NullStripRecorder, make_strip_recorder, render_index, write_report
+from slam.run.report_plots import FIGURE_SIZE_PX
+from slam.core.config import SlamConfig
 
 FRAMES = 40
 PLOTS = ("trajectory_top.png", "ate_over_time.png", "rpe.png", "timing.png")
@@ -138,12 +138,12 @@ def test_configured_formats_are_written_by_the_run(dynamic_run):
 
 @pytest.mark.slow
 def test_a_failing_plot_is_a_warning_and_left_out(dynamic_run, tmp_path, monkeypatch, caplog):
-    import slam.report_plots
+    import slam.run.report_plots
 
     def broken(*_args, **_kw):
         raise RuntimeError("no plotting today")
 
-    monkeypatch.setattr(slam.report_plots, "plot_rpe", broken)
+    monkeypatch.setattr(slam.run.report_plots, "plot_rpe", broken)
     summary = json.loads((dynamic_run / "summary.json").read_text())
     evaluation = evaluate_files(dynamic_run / "groundtruth.txt", dynamic_run / "trajectory.txt")
     with caplog.at_level(logging.WARNING, logger="dynslam"):
@@ -155,12 +155,12 @@ def test_a_failing_plot_is_a_warning_and_left_out(dynamic_run, tmp_path, monkeyp
 
 
 def test_a_failing_report_keeps_the_run_and_report_false_skips_it(tmp_path, monkeypatch, caplog):
-    import slam.report
+    import slam.run.report
 
     def broken(*_args, **_kw):
         raise OSError("disk full")
 
-    monkeypatch.setattr(slam.report, "write_report", broken)
+    monkeypatch.setattr(slam.run.report, "write_report", broken)
     with caplog.at_level(logging.WARNING, logger="dynslam"):
         assert main(["demo", "--frames", "5", "-o", str(tmp_path / "a"), "-q"]) == 0
     assert (tmp_path / "a" / "summary.json").is_file()

@@ -165,7 +165,7 @@ def test_bonn_ablation_sweep_file_defines_the_readme_ablation():
         "off": (), "dynamic_box_prior": ("dynamic_box_prior",), "dynamic_cpr": ("dynamic_cpr",),
         "dynamic_box_depth": ("dynamic_box_depth",), "dynamic_flow_epipolar": ("dynamic_flow_epipolar",),
         "dynamic_depth_sdf": ("dynamic_depth_sdf",), "dynamic_all": ("dynamic_all",)}
-    from slam.config import SlamConfig, apply_yaml
+    from slam.core.config import SlamConfig, apply_yaml
 
     for config in spec.configs:  # every preset exists and loads
         for preset in spec.presets + list(config.presets):

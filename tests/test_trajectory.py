@@ -1,4 +1,4 @@
-"""Tests for slam.trajectory: TUM I/O, atomic and streaming writers, quaternions."""
+"""Tests for slam.run.trajectory: TUM I/O, atomic and streaming writers, quaternions."""
 from __future__ import annotations
 
 import os
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from slam.trajectory import (
+from slam.run.trajectory import (
     TrajectoryFormatError,
     TumStreamWriter,
     matrix_to_quaternion,

@@ -1,4 +1,4 @@
-"""KITTI / EuRoC trajectory files (slam.trajectory_formats): round trips, naming, the
+"""KITTI / EuRoC trajectory files (slam.run.trajectory_formats): round trips, naming, the
 ``export-trajectory`` command, and that evo reads every exported file to the TUM file's ATE."""
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from slam.cli import TRAJECTORY_FORMAT_NAMES, main
-from slam.config import TRAJECTORY_FORMATS, ConfigError, SlamConfig, apply_overrides
-from slam.evaluation import evaluate, evaluate_files
-from slam.trajectory import TrajectoryFormatError, read_tum, tum_rows_from_poses, write_tum
-from slam.trajectory_formats import (EUROC_HEADER, export_formats, export_trajectory, kitti_times_path,
+from slam.core.config import TRAJECTORY_FORMATS, ConfigError, SlamConfig, apply_overrides
+from slam.run.evaluation import evaluate, evaluate_files
+from slam.run.trajectory import TrajectoryFormatError, read_tum, tum_rows_from_poses, write_tum
+from slam.run.trajectory_formats import (EUROC_HEADER, export_formats, export_trajectory, kitti_times_path,
                                      read_euroc, read_kitti, seconds_to_nanoseconds, trajectory_kind,
                                      trajectory_path, write_trajectory)
 

@@ -109,9 +109,9 @@ def run_case(case: Case, results: Path) -> CaseResult:
 
 
 def _check_against_groundtruth(result: CaseResult, gt_file: Path) -> None:
-    from slam.evaluation import evaluate_files
-    from slam.loop_evaluation import check_loops, estimate_body_rotation
-    from slam.trajectory import read_tum
+    from slam.run.evaluation import evaluate_files
+    from slam.run.loop_evaluation import check_loops, estimate_body_rotation
+    from slam.run.trajectory import read_tum
 
     report = evaluate_files(gt_file, result.results / "trajectory.txt", 0.02)
     result.max_error_m = float(report.ate.errors.max())

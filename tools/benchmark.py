@@ -33,7 +33,7 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
                 blackout: str = "") -> dict:
     from slam.cli import _parse_overrides, resolve_run_config
     from slam.datasets import TumDataset
-    from slam.pipeline import Pipeline
+    from slam.run.pipeline import Pipeline
 
     config = resolve_run_config(sequence, config_files, _parse_overrides(overrides))
     dataset = TumDataset(sequence, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
@@ -69,7 +69,7 @@ def _place_recognition(report: dict) -> dict:
 
 def run_peer(python: str, sequence: Path, workdir: Path) -> dict:
     """Stock ORB-SLAM3 through ../shared/tools/orbslam3_peer (never a dependency of dynslam)."""
-    from slam.evaluation import evaluate_files
+    from slam.run.evaluation import evaluate_files
 
     peer = SHARED / "tools" / "orbslam3_peer"
     settings = "bonn.yaml" if "bonn" in sequence.name else "tum1.yaml"

@@ -13,7 +13,7 @@ import argparse
 import sys
 
 from slam.datasets import SyntheticSequence
-from slam.dynamic_eval import classify_synthetic, synthetic_config
+from slam.run.dynamic_eval import classify_synthetic, synthetic_config
 
 
 def main(argv=None) -> int:

@@ -129,7 +129,7 @@ def run(frames: int = 2000, seed: int = 0, path: str = "orbit", block: int = 100
         with tempfile.TemporaryDirectory(prefix="dynslam_memory_") as tmp:
             return run(frames, seed, path, block, Path(tmp), config_files, overrides, tracemalloc_top, progress)
     from slam.datasets import SyntheticSequence
-    from slam.pipeline import Pipeline
+    from slam.run.pipeline import Pipeline
 
     rss_start = current_rss_mib()
     sequence = SyntheticSequence(n_frames=frames, seed=seed, path=path)

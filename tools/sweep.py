@@ -159,7 +159,7 @@ def build_pipeline(job: dict):
     """The Pipeline of one job, configured as ``dynslam run`` would be plus the job's seed."""
     from slam.cli import resolve_run_config
     from slam.datasets import TumDataset
-    from slam.pipeline import Pipeline
+    from slam.run.pipeline import Pipeline
 
     files = list(job["presets"])
     overrides = dict(job["overrides"])
@@ -178,7 +178,7 @@ def build_pipeline(job: dict):
 
 def seeded(config, seed: int):
     """Repeats differ only in their seeds: RANSAC's and every dynamic method's random choices."""
-    from slam.dynamic_config import METHOD_NAMES
+    from slam.core.dynamic_config import METHOD_NAMES
 
     config.seed = seed
     for method in METHOD_NAMES:
@@ -191,7 +191,7 @@ def oracle_pipeline(sequence, config, run_dir: str, max_frames: Optional[int]):
     """A Pipeline whose System sees the generated movers' true boxes (YOLOX does not detect the
     synthetic people)."""
     from frontend.dynamic.oracle import synthetic_oracle
-    from slam.pipeline import Pipeline
+    from slam.run.pipeline import Pipeline
 
     return Pipeline(sequence, config, run_dir, max_frames,
                     detector=synthetic_oracle(sequence, margin_px=ORACLE_MARGIN_PX))
@@ -199,7 +199,7 @@ def oracle_pipeline(sequence, config, run_dir: str, max_frames: Optional[int]):
 
 def run_one(job: dict) -> int:
     """Child process: one run; on failure ``error.txt`` in the run folder says why (exit status 1)."""
-    from slam.atomic_io import write_text_atomic
+    from slam.core.atomic_io import write_text_atomic
 
     try:
         summary = build_pipeline(job).run()
@@ -328,7 +328,7 @@ def describe_run(row: dict) -> str:
 
 
 def write_tables(rows: list[dict], spec: SweepSpec, output: Path) -> None:
-    from slam.atomic_io import write_text_atomic
+    from slam.core.atomic_io import write_text_atomic
 
     write_text_atomic(output / "sweep.csv", csv_text(rows))
     write_text_atomic(output / "sweep.md", markdown_table(rows, spec))
@@ -380,7 +380,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.run_one:
         return run_one(json.loads(args.run_one))
-    from slam.config import ConfigError
+    from slam.core.config import ConfigError
 
     try:
         spec = spec_from_args(args)

@@ -1,29 +1,18 @@
 """Dynamic-feature rejection: each method gives every keypoint a dynamic probability.
 
 The core system honours ``FeatureFrame.dynamic_prob`` in tracking and in the back end; the methods
-plug in through a ``DynamicFilter``. ``build_dynamic_filter`` picks them from the config; with none
-enabled it returns the null filter (every feature static), so the pipeline has no "if dynamic"
-branches. Ablations are configs: any subset of methods, any fusion mode.
+plug in through a ``DynamicFilter``. ``frontend.dynamic_filter.build_dynamic_filter`` picks them from
+the config; with none enabled it returns the null filter (every feature static), so the pipeline has no
+"if dynamic" branches. Ablations are configs: any subset of methods, any fusion mode. (The factory
+lives outside this package because it also builds the detector, which imports this package.)
 """
 from __future__ import annotations
 
-import importlib
 from typing import Optional, Protocol
 
 import numpy as np
 
-from slam.camera import PinholeCamera
-from slam.frame import FeatureFrame
-from slam.timing import ModuleTimer
-
-# method name -> (module, class, config attribute, takes class groups)
-_METHODS = {
-    "cpr": ("frontend.dynamic.cpr", "CprMethod", "cpr", False),
-    "box_depth": ("frontend.dynamic.box_depth", "BoxDepthMethod", "box_depth", True),
-    "flow_epipolar": ("frontend.dynamic.flow_epipolar", "FlowEpipolarMethod", "flow_epipolar", True),
-    "depth_sdf": ("frontend.dynamic.depth_sdf", "DepthSdfMethod", "depth_sdf", True),
-}
-
+from slam.core.frame import FeatureFrame
 
 class DynamicFilter(Protocol):
     name: str
@@ -48,25 +37,3 @@ class StaticWorld:
 
     def end_frame(self, T_cw, is_keyframe) -> None:
         return None
-
-
-def build_method(name: str, config):
-    module_name, class_name, cfg_attr, takes_classes = _METHODS[name]
-    cls = getattr(importlib.import_module(module_name), class_name)
-    method_cfg = getattr(config.dynamic, cfg_attr)
-    return cls(method_cfg, config.dynamic.classes) if takes_classes else cls(method_cfg)
-
-
-def build_dynamic_filter(config, camera: PinholeCamera, timer: Optional[ModuleTimer] = None,
-                         sequence_name: str = "", detector=None) -> DynamicFilter:
-    """The filter for ``config.dynamic``: the null filter, or the enabled methods and their fusion."""
-    if not config.dynamic.methods and config.dynamic.box_prior <= 0:
-        return StaticWorld()
-    from frontend.dynamic.rejector import DynamicRejector
-
-    methods = [build_method(name, config) for name in config.dynamic.methods]
-    if detector is None and (any(m.needs_detector for m in methods) or config.dynamic.box_prior > 0):
-        from frontend.detector import build_detector
-
-        detector = build_detector(config.dynamic.detector, config.dynamic.classes, sequence_name)
-    return DynamicRejector(config.dynamic, camera, methods, detector, timer)

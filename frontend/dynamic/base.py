@@ -13,8 +13,8 @@ from typing import Optional, Protocol
 
 import numpy as np
 
-from slam.camera import PinholeCamera
-from slam.frame import FeatureFrame
+from slam.core.camera import PinholeCamera
+from slam.core.frame import FeatureFrame
 
 
 @dataclass(frozen=True)

@@ -87,7 +87,7 @@ from frontend.dynamic.box_depth_segmentation import box_pixels, flood_fill, over
 from frontend.dynamic.box_depth_segmentation import (eq8_filter, nearest_valid,  # noqa: F401  (re-exported)
                                                      seed_points, side_distance)
 from frontend.matching import hamming_pairs
-from slam.dynamic_config import BoxDepthConfig, ClassGroups
+from slam.core.dynamic_config import BoxDepthConfig, ClassGroups
 
 _MAX_HAMMING = 50            # descriptor distance cap for frame-to-frame matching (ORB-SLAM TH_LOW)
 _MATCH_RADIUS_PX = 40.0      # frame-to-frame matches are searched this close to the previous position

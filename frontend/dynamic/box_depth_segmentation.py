@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from frontend.dynamic.base import Detection
-from slam.dynamic_config import BoxDepthConfig
+from slam.core.dynamic_config import BoxDepthConfig
 
 _SEED_SEARCH_PX = 4          # a seed on invalid depth moves to the nearest valid pixel this close
 _MAX_FILL_COMPONENTS = 64    # flood fills per passive box (one per depth-connected piece of seeds)

@@ -132,8 +132,8 @@ from frontend.dynamic.base import DynamicContext, MethodOutput, keypoints_in_mas
 from frontend.dynamic.cpr_icp import (Cloud, build_cloud, cluster, correlation_scores, mad_threshold,  # noqa: F401
                                       mls_smooth, sample_grid, sub_poses, voxel_filter, _MIN_CLUSTER_POINTS,
                                       _smallest_eigvec)
-from slam.dynamic_config import CprConfig
-from slam.geometry import invert
+from slam.core.dynamic_config import CprConfig
+from slam.core.geometry import invert
 
 
 # --- masks -------------------------------------------------------------------------------------------------

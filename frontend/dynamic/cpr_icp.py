@@ -14,8 +14,8 @@ import numpy as np
 from scipy.cluster.vq import kmeans2
 from scipy.spatial import cKDTree
 
-from slam.camera import PinholeCamera
-from slam.dynamic_config import CprConfig
+from slam.core.camera import PinholeCamera
+from slam.core.dynamic_config import CprConfig
 
 _MIN_CLUSTER_POINTS = 10
 _MAX_LOOKUP = 8_000_000

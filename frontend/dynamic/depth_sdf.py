@@ -50,7 +50,7 @@ from typing import Optional
 import numpy as np
 
 from frontend.dynamic.base import DynamicContext, MethodOutput
-from slam.dynamic_config import ClassGroups, DepthSdfConfig
+from slam.core.dynamic_config import ClassGroups, DepthSdfConfig
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 

@@ -87,7 +87,7 @@ import cv2
 import numpy as np
 
 from frontend.dynamic.base import Detection, DynamicContext, MethodOutput
-from slam.dynamic_config import ClassGroups, FlowEpipolarConfig
+from slam.core.dynamic_config import ClassGroups, FlowEpipolarConfig
 
 
 def bayes_posterior(likelihood: np.ndarray, prior: np.ndarray) -> np.ndarray:

@@ -16,10 +16,10 @@ import numpy as np
 
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.fusion import fuse
-from slam.camera import PinholeCamera
-from slam.dynamic_config import DynamicConfig
-from slam.frame import FeatureFrame
-from slam.timing import ModuleTimer
+from slam.core.camera import PinholeCamera
+from slam.core.dynamic_config import DynamicConfig
+from slam.core.frame import FeatureFrame
+from slam.core.timing import ModuleTimer
 
 
 @dataclass

@@ -6,7 +6,7 @@ it; tests and evaluations need movers that are seen, but leave enough static sce
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Sequence
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -14,8 +14,6 @@ from .synthetic_bodies import mover_bodies
 from .synthetic_movers import Mover, candidate_movers
 from .synthetic_primitives import _EDGES, _NEAR, _SIGNS
 
-if TYPE_CHECKING:
-    from .synthetic import SyntheticSequence
 
 _PLAN_TRIES = 120
 """Candidate paths tried per mover at most (see ``MoverPlanner.plan``)."""
@@ -45,11 +43,25 @@ def _clash(ca: np.ndarray, ra: np.ndarray, ha: np.ndarray, cb: np.ndarray, rb: n
     return out
 
 
+class PlannedScene(Protocol):
+    """What the planner reads of a ``SyntheticSequence``: image size, intrinsics, seed, frame count and
+    rate, the camera path and the static scene (a Protocol, so this module does not import that one)."""
+
+    width: int
+    height: int
+    intrinsics: tuple[float, float, float, float]
+    seed: int
+    n_frames: int
+    fps: float
+    pose: Callable[[float], np.ndarray]
+    primitives: list
+
+
 class MoverPlanner:
     """Plans the movers of one ``SyntheticSequence`` (its image size, intrinsics, camera path, seed, frame
     count and static scene); ``plan(kinds)`` gives the movers in the order of ``kinds``."""
 
-    def __init__(self, seq: SyntheticSequence) -> None:
+    def __init__(self, seq: PlannedScene) -> None:
         self.width, self.height, self.intrinsics = seq.width, seq.height, seq.intrinsics
         self.seed, self.n_frames, self.fps = seq.seed, seq.n_frames, seq.fps
         self.pose, self.primitives = seq.pose, seq.primitives

@@ -21,6 +21,8 @@ import cv2
 import numpy as np
 import yaml
 
+from slam.core.errors import DynslamError
+
 from .base import RGBDFrame
 
 PathLike = Union[str, Path]
@@ -32,7 +34,7 @@ height depth_scale."""
 _MAX_NAMES = 10
 
 
-class DatasetError(ValueError):
+class DatasetError(DynslamError, ValueError):
     """A folder that cannot be read as a dataset at all (missing root, missing lists, malformed lines)."""
 
 

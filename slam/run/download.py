@@ -25,7 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Callable, Optional, Union
 
-from slam.atomic_io import fsync_directory
+from slam.core.atomic_io import fsync_directory
+from slam.core.errors import EXIT_RUNTIME_FAILURE, DynslamError
 
 PathLike = Union[str, Path]
 Progress = Callable[[int, Optional[int]], None]
@@ -43,8 +44,15 @@ CHUNK_BYTES = 1 << 20
 TIMEOUT_S = 60.0
 
 
-class DownloadError(RuntimeError):
-    """A sequence could not be fetched, verified or unpacked; the message names the URL or file."""
+class DownloadError(DynslamError, RuntimeError):
+    """A sequence could not be fetched, verified or unpacked; the message names the URL or file.
+    Exit status 2: the request itself is wrong (name, URL, checksum, archive, 404)."""
+
+
+class NetworkError(DownloadError):
+    """The server could not be reached or the transfer broke off: exit status 1 (run it again)."""
+
+    exit_code = EXIT_RUNTIME_FAILURE
 
 
 @dataclass(frozen=True)
@@ -129,11 +137,12 @@ def fetch(url: str, part: Path, progress: Progress) -> int:
     except urllib.error.HTTPError as exc:
         if exc.code == 416 and have:
             return _range_not_satisfiable(url, part, have, exc, progress)
-        raise DownloadError(f"{url}: HTTP {exc.code} {exc.reason}"
-                            + (" (no such sequence on the server?)" if exc.code == 404 else "")) from None
+        error = DownloadError if 400 <= exc.code < 500 else NetworkError   # 4xx: the request; 5xx: the server
+        raise error(f"{url}: HTTP {exc.code} {exc.reason}"
+                    + (" (no such sequence on the server?)" if exc.code == 404 else "")) from None
     except (urllib.error.URLError, OSError, http.client.HTTPException) as exc:
         reason = getattr(exc, "reason", exc)
-        raise DownloadError(f"cannot reach {url}: {reason}") from None
+        raise NetworkError(f"cannot reach {url}: {reason}") from None
     except ValueError as exc:  # urllib's "unknown url type"
         raise DownloadError(f"bad URL {url}: {exc}") from None
     with response:
@@ -141,7 +150,7 @@ def fetch(url: str, part: Path, progress: Progress) -> int:
         _stream(response, url, part, start, total, progress)
     size = part.stat().st_size
     if total is not None and size != total:
-        raise DownloadError(f"{url}: got {size} of {total} bytes; run the command again to resume")
+        raise NetworkError(f"{url}: got {size} of {total} bytes; run the command again to resume")
     return size
 
 
@@ -169,7 +178,7 @@ def _stream(response, url: str, part: Path, start: int, total: Optional[int], pr
                 chunk = response.read(CHUNK_BYTES)
             except (OSError, http.client.HTTPException) as exc:  # reset, timeout, IncompleteRead
                 progress(done, total)
-                raise DownloadError(f"{url}: connection lost after {done} bytes ({exc.__class__.__name__}: "
+                raise NetworkError(f"{url}: connection lost after {done} bytes ({exc.__class__.__name__}: "
                                     f"{exc}); run the command again to resume") from None
             if not chunk:
                 break

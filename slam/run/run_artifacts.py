@@ -20,7 +20,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from slam.atomic_io import write_atomic, write_text_atomic
+from slam.core.atomic_io import write_atomic, write_text_atomic
+from slam.run.sparse_map import write_sparse_ply
 
 log = logging.getLogger("dynslam")
 
@@ -92,8 +93,6 @@ class RunArtifacts:
         if export.save_map:
             system.save_map(self.output_dir / MAP_FILE)
         if export.sparse_ply:
-            from slam.map_export import write_sparse_ply
-
             write_sparse_ply(self.output_dir / SPARSE_PLY, system.mapper.map)
 
 

@@ -19,8 +19,8 @@ from typing import Iterable, Mapping, Optional
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from slam.evaluation import umeyama_alignment
-from slam.evaluation_common import associate
+from slam.run.evaluation import umeyama_alignment
+from slam.run.evaluation_common import associate
 
 FALSE_LOOP_T = 0.10
 FALSE_LOOP_DEG = 5.0

@@ -14,14 +14,15 @@ from typing import Any, Optional
 
 import yaml
 
-from slam.dynamic_config import DETECTOR_MODELS, FUSION_MODES, METHOD_NAMES, DynamicConfig
-from slam.loop_config import NON_NEGATIVE as LOOP_NON_NEGATIVE, POSITIVE as LOOP_POSITIVE
-from slam.loop_config import UNIT_INTERVAL as LOOP_UNIT_INTERVAL, LoopConfig, validate_loop
+from slam.core.dynamic_config import DETECTOR_MODELS, FUSION_MODES, METHOD_NAMES, DynamicConfig
+from slam.core.loop_config import NON_NEGATIVE as LOOP_NON_NEGATIVE, POSITIVE as LOOP_POSITIVE
+from slam.core.loop_config import UNIT_INTERVAL as LOOP_UNIT_INTERVAL, LoopConfig, validate_loop
+from slam.core.errors import DynslamError
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
 
-class ConfigError(ValueError):
+class ConfigError(DynslamError, ValueError):
     """A config file or value is wrong; the message names the file and the key."""
 
 
@@ -125,7 +126,7 @@ class BackendConfig:
     landmark_max_dynamic_prob: float = 0.25
 
 
-# Trajectory file formats a run can write besides TUM (slam.trajectory_formats implements them).
+# Trajectory file formats a run can write besides TUM (slam.run.trajectory_formats implements them).
 TRAJECTORY_FORMATS = ("tum", "kitti", "euroc")
 
 
@@ -140,7 +141,7 @@ class OutputConfig:
 
 @dataclass
 class MapExportConfig:
-    """Maps a run leaves behind and ``dynslam export`` builds (slam.map_export, slam.tsdf)."""
+    """Maps a run leaves behind and ``dynslam export`` builds (slam.run.map_export, slam.run.tsdf)."""
     save_map: bool = True          # <results>/map.npz, so the sparse map can be regenerated
     sparse_ply: bool = True        # <results>/map_sparse.ply at the end of each run
     voxel_size: float = 0.025      # TSDF voxel edge (m); coarsened with a warning past max_voxels

@@ -20,7 +20,8 @@ from typing import IO, Union
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from slam.atomic_io import write_text_atomic  # noqa: F401  (re-exported)
+from slam.core.atomic_io import write_text_atomic  # noqa: F401  (re-exported)
+from slam.core.errors import DynslamError
 
 PathLike = Union[str, "os.PathLike[str]"]  # str or pathlib.Path
 
@@ -30,7 +31,7 @@ _VALUE_FMT = "%.9f"
 _QUAT_NORM_MIN = 1e-9
 
 
-class TrajectoryFormatError(ValueError):
+class TrajectoryFormatError(DynslamError, ValueError):
     """A trajectory file line that cannot be parsed as a TUM pose."""
 
     def __init__(self, path: PathLike, line_number: int, reason: str) -> None:

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from slam.config import CameraConfig
+from slam.core.config import CameraConfig
 
 
 @dataclass(frozen=True)

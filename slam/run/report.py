@@ -30,8 +30,8 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from slam.atomic_io import write_text_atomic
-from slam.evaluation import EvaluationReport
+from slam.core.atomic_io import write_text_atomic
+from slam.run.evaluation import EvaluationReport
 
 log = logging.getLogger("dynslam")
 REPORT_DIR = "report"
@@ -72,7 +72,7 @@ class DynamicStripRecorder:
         """Offer the ``position``-th processed frame (image, its FeatureFrame, dynamic mask)."""
         if frame is None or not self._wanted(position):
             return
-        from slam.report_plots import draw_dynamic_thumbnail
+        from slam.run.report_plots import draw_dynamic_thumbnail
 
         n_dynamic = int(np.count_nonzero(frame.dynamic_prob >= self.threshold))
         label = f"frame {position}: {n_dynamic}/{len(frame.dynamic_prob)} dynamic"
@@ -111,7 +111,7 @@ def _write_csv(path: Path, header: str, columns: list[np.ndarray], fmt: str = "%
 
 
 def _evaluation_artefacts(folder: Path, evaluation: EvaluationReport) -> dict[str, Callable[[], Any]]:
-    from slam import report_plots as plots
+    from slam.run import report_plots as plots
 
     ate = evaluation.ate
     t0 = float(ate.timestamps[0])
@@ -144,7 +144,7 @@ def write_report(output_dir: Path | str, summary: dict[str, Any], evaluation: Op
                  strip_thumbnails: list[np.ndarray]) -> Path:
     """Write ``<output_dir>/report/`` (see the module docstring); returns the index.html path.
     Images whose data is missing (no ground truth, no timing, no dynamic handling) are left out."""
-    from slam import report_plots as plots
+    from slam.run import report_plots as plots
 
     folder = Path(output_dir) / REPORT_DIR
     folder.mkdir(parents=True, exist_ok=True)

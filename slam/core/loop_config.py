@@ -52,7 +52,7 @@ UNIT_INTERVAL = {"loop.min_score_ratio"}
 
 
 def validate_loop(cfg: LoopConfig, source: str, error: type) -> None:
-    """Checks beyond signs and ranges (those are in slam.config's tables)."""
+    """Checks beyond signs and ranges (those are in slam.core.config's tables)."""
     if cfg.kernel not in KERNELS:
         raise error(f"{source}: 'loop.kernel' must be one of {', '.join(KERNELS)}, got '{cfg.kernel}'")
     if cfg.min_inliers < 4 or cfg.reloc_min_inliers < 4:

@@ -1,7 +1,7 @@
-"""Pieces shared by the trajectory metrics in ``slam.evaluation`` (ATE) and ``slam.evaluation_rpe`` (RPE):
+"""Pieces shared by the trajectory metrics in ``slam.run.evaluation`` (ATE) and ``slam.run.evaluation_rpe`` (RPE):
 the error type, summary statistics, input checks and evo-compatible timestamp association.
 
-Why a module of its own: both metric modules need these, and ``slam.evaluation`` re-exports the RPE
+Why a module of its own: both metric modules need these, and ``slam.run.evaluation`` re-exports the RPE
 functions; keeping the shared parts here avoids an import cycle between the two.
 """
 from __future__ import annotations
@@ -10,11 +10,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slam.core.errors import DynslamError
+
 _CHUNK = 1 << 22  # max elements of the distance matrix in unsorted association
 _STATS = ("rmse", "mean", "median", "std", "min", "max")
 
 
-class EvaluationError(ValueError):
+class EvaluationError(DynslamError, ValueError):
     """Trajectories that cannot be evaluated (no overlap, too few poses, missing file)."""
 
 

@@ -20,8 +20,8 @@ matrices; the ground truth is the reference. Three metrics are provided:
   read as m/s and deg/s (TUM prints them as m and deg). TUM samples 10000
   random pairs when there are more; we always use all of them.
 
-Module layout: the RPE lives in ``slam.evaluation_rpe`` and the pieces both metrics share (errors,
-statistics, association) in ``slam.evaluation_common``; their public names are re-exported here.
+Module layout: the RPE lives in ``slam.run.evaluation_rpe`` and the pieces both metrics share (errors,
+statistics, association) in ``slam.run.evaluation_common``; their public names are re-exported here.
 """
 from __future__ import annotations
 
@@ -31,11 +31,11 @@ from typing import Any
 
 import numpy as np
 
-from slam.evaluation_common import _STATS, ErrorStats, EvaluationError, _associate_checked, _inputs
-from slam.evaluation_common import associate  # noqa: F401  (re-exported)
-from slam.evaluation_rpe import RpeResult, rpe_frames, rpe_seconds
-from slam.evaluation_rpe import rpe  # noqa: F401  (re-exported)
-from slam.trajectory import PathLike, read_tum
+from slam.run.evaluation_common import _STATS, ErrorStats, EvaluationError, _associate_checked, _inputs
+from slam.run.evaluation_common import associate  # noqa: F401  (re-exported)
+from slam.run.evaluation_rpe import RpeResult, rpe_frames, rpe_seconds
+from slam.run.evaluation_rpe import rpe  # noqa: F401  (re-exported)
+from slam.run.trajectory import PathLike, read_tum
 
 
 @dataclass

@@ -3,12 +3,12 @@
 - Sparse map: the landmarks (``bad`` ones left out) as a binary PLY point cloud in the trajectory's
   world frame, coloured from the image (the BGR colour each landmark got at creation) or, with
   ``by_dynamic``, by its mean dynamic evidence (blue static .. red dynamic).
-- Dense static map: the keyframes' RGB-D fused into a TSDF (``slam.tsdf``) at their optimised poses,
+- Dense static map: the keyframes' RGB-D fused into a TSDF (``slam.run.tsdf``) at their optimised poses,
   with the pixels the front end judged dynamic removed; a coloured triangle mesh and a point cloud.
 
 Inputs: a results folder (``keyframes.txt`` poses, ``config.yaml``, ``map.npz``, ``masks/``, and the
 keyframe images from ``summary.json``'s ``dataset_path`` or the folder's own ``keyframes/``), or a
-saved map file plus a dataset folder. See ``slam.run_artifacts`` for what a run leaves behind.
+saved map file plus a dataset folder. See ``slam.run.run_artifacts`` for what a run leaves behind.
 """
 from __future__ import annotations
 
@@ -22,9 +22,11 @@ import cv2
 import numpy as np
 import yaml
 
-from slam.atomic_io import fsync_directory, write_atomic
-from slam.run_artifacts import KEYFRAME_DEPTH_SCALE, KEYFRAME_DIR, MAP_FILE, MASK_DIR, SPARSE_PLY, read_keyframe_list
-from slam.tsdf import FusionResult, KeyframeSet, fuse_keyframes
+from slam.core.atomic_io import fsync_directory
+from slam.core.errors import DynslamError
+from slam.run.run_artifacts import KEYFRAME_DEPTH_SCALE, KEYFRAME_DIR, MAP_FILE, MASK_DIR, SPARSE_PLY, read_keyframe_list
+from slam.run.sparse_map import dynamic_colors, dynamic_evidence, sparse_points, write_ply_points, write_sparse_ply  # noqa: F401
+from slam.run.tsdf import FusionResult, KeyframeSet, fuse_keyframes
 
 SPARSE_DYNAMIC_PLY = "map_sparse_dynamic.ply"
 MESH_PLY = "map_dense_mesh.ply"
@@ -32,50 +34,8 @@ CLOUD_PLY = "map_dense_cloud.ply"
 _TIME_TOLERANCE_S = 1e-3      # keyframes.txt keeps 6 decimals; frames are >= 10 ms apart
 
 
-class MapExportError(ValueError):
+class MapExportError(DynslamError, ValueError):
     """An export input is missing or inconsistent; the message names the path and the problem."""
-
-
-# ------------------------------------------------------------------------------------------ sparse
-def dynamic_evidence(landmarks) -> np.ndarray:
-    """Mean dynamic probability over a landmark's observations (the back end's culling statistic)."""
-    return landmarks.dynamic_sum / np.maximum(landmarks.n_obs + landmarks.dynamic_hits, 1)
-
-
-def dynamic_colors(evidence: np.ndarray) -> np.ndarray:
-    """(N,3) uint8 RGB from evidence in [0, 1]: OpenCV's JET colormap, blue = static, red = dynamic."""
-    levels = np.round(np.clip(np.nan_to_num(evidence), 0.0, 1.0) * 255).astype(np.uint8).reshape(-1, 1)
-    return cv2.applyColorMap(levels, cv2.COLORMAP_JET).reshape(-1, 3)[:, ::-1].copy()
-
-
-def sparse_points(slam_map, by_dynamic: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """(xyz (N,3) world, rgb (N,3) uint8) of the map's good landmarks, in landmark-id order."""
-    lm = slam_map.landmarks
-    keep = ~lm.bad
-    if by_dynamic:
-        return lm.xyz[keep].copy(), dynamic_colors(dynamic_evidence(lm)[keep])
-    return lm.xyz[keep].copy(), lm.color[keep][:, ::-1].copy()   # stored BGR, PLY wants RGB
-
-
-def write_ply_points(path: Path | str, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    """Binary little-endian PLY: float x y z, uchar red green blue per vertex (open3d reads it)."""
-    vertex = np.zeros(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                       ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    for axis, name in enumerate("xyz"):
-        vertex[name] = xyz[:, axis]
-    for channel, name in enumerate(("red", "green", "blue")):
-        vertex[name] = rgb[:, channel]
-    header = ("ply\nformat binary_little_endian 1.0\ncomment dynslam sparse map (landmarks)\n"
-              f"element vertex {len(vertex)}\nproperty float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    write_atomic(path, lambda handle: (handle.write(header.encode("ascii")), handle.write(vertex.tobytes())))
-
-
-def write_sparse_ply(path: Path | str, slam_map, by_dynamic: bool = False) -> int:
-    """The landmarks of ``slam_map`` as a PLY point cloud; returns the number of points."""
-    xyz, rgb = sparse_points(slam_map, by_dynamic)
-    write_ply_points(path, xyz, rgb)
-    return len(xyz)
 
 
 # ------------------------------------------------------------------------------------------- dense
@@ -135,7 +95,7 @@ def ghost_fraction(points_w: np.ndarray, T_wc: np.ndarray, depth: np.ndarray, ca
 # ------------------------------------------------------------------------------------------ inputs
 def config_from_yaml_text(text: str, source: str, overrides: Optional[dict] = None):
     """A validated SlamConfig from a run's resolved YAML (config.yaml or a map's config_yaml)."""
-    from slam.config import ConfigError, SlamConfig, apply_overrides
+    from slam.core.config import ConfigError, SlamConfig, apply_overrides
 
     try:
         data = yaml.safe_load(text) or {}
@@ -266,7 +226,7 @@ class ExportReport:
 def _load_inputs(req: ExportRequest):
     """(config, folder, keyframe timestamps, poses, map or None, map path or None) of a results folder or map."""
     from backend.map_io import load_map
-    from slam.trajectory import read_tum
+    from slam.run.trajectory import read_tum
 
     if req.map_path is not None:
         slam_map, _camera, config_yaml = load_map(req.map_path)

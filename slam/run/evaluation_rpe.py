@@ -1,6 +1,6 @@
 """Relative pose error as evo (per frame) and the TUM scripts (over 1 s) compute it.
 
-The conventions are those of ``slam.evaluation`` (see its docstring), which re-exports everything
+The conventions are those of ``slam.run.evaluation`` (see its docstring), which re-exports everything
 public here: ``rpe_frames`` pairs consecutive associated poses as ``evo_rpe ... --delta 1 --delta_unit f``,
 ``rpe_seconds`` pairs poses ~1 s apart as TUM's ``evaluate_rpe.py --fixed_delta``.
 """
@@ -11,7 +11,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from slam.evaluation_common import ErrorStats, EvaluationError, _associate_checked, _describe, _inputs
+from slam.run.evaluation_common import ErrorStats, EvaluationError, _associate_checked, _describe, _inputs
 
 
 @dataclass

@@ -16,7 +16,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from slam.atomic_io import write_atomic
+from slam.core.atomic_io import write_atomic
 
 FIGURE_SIZE_PX = (960, 720)     # width, height of every matplotlib image
 _DPI = 120

@@ -24,17 +24,18 @@ from backend.map_store import SlamMap
 from backend.place_recognition import Vocabulary, load_vocabulary
 from backend.pnp_verification import PnpParams
 from backend.relocalization import Relocalizer
-from frontend.dynamic import DynamicFilter, build_dynamic_filter
+from frontend.dynamic import DynamicFilter
+from frontend.dynamic_filter import build_dynamic_filter
 from frontend.dynamic.base import keypoints_in_mask
 from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_keyframe
 from frontend.orb_extractor import OrbExtractor
 from frontend.tracker import Tracker, TrackingResult, TrackingState
-from slam.camera import PinholeCamera
-from slam.config import SlamConfig
-from slam.frame import FeatureFrame, MapPoints
-from slam.geometry import invert, pose_distance
-from slam.input_checks import clean_depth
-from slam.timing import ModuleTimer
+from slam.core.camera import PinholeCamera
+from slam.core.config import SlamConfig
+from slam.core.frame import FeatureFrame, MapPoints
+from slam.core.geometry import invert, pose_distance
+from slam.runtime.inputs import clean_depth
+from slam.core.timing import ModuleTimer
 
 
 @dataclass

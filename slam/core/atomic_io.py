@@ -14,10 +14,12 @@ from typing import IO, Callable, Union
 
 import numpy as np
 
+from slam.core.errors import DynslamError
+
 PathLike = Union[str, "os.PathLike[str]"]
 
 
-class OutputDirError(OSError):
+class OutputDirError(DynslamError, OSError):
     """A results folder that cannot be created or written to."""
 
 

@@ -15,9 +15,9 @@ import numpy as np
 
 from frontend.dynamic.base import keypoints_in_mask
 from frontend.dynamic.oracle import precision_recall, synthetic_oracle
-from slam.config import SlamConfig, apply_overrides, apply_yaml
+from slam.core.config import SlamConfig, apply_overrides, apply_yaml
 from slam.datasets import SyntheticSequence
-from slam.system import System
+from slam.runtime.system import System
 
 
 @dataclass

@@ -15,21 +15,21 @@ A results folder holds:
   ``trajectory.euroc.csv``, ``trajectory_online.euroc.csv``, ``keyframes.euroc.csv``. Use the
   ``trajectory*`` files to evaluate the final result, ``trajectory_online*`` to judge what a
   causal (live) system would have output, ``keyframes*`` for the optimised keyframes only; see
-  ``slam.trajectory_formats`` for the formats;
+  ``slam.run.trajectory_formats`` for the formats;
 - ``groundtruth.txt``          for generated sequences only, the exact camera path;
 - ``evaluation.json``          ATE / RPE when ground truth exists;
 - ``summary.json``             counts, per-module milliseconds per frame, ATE;
 - ``graph.g2o``, ``graph.json``   the optimised keyframe graph (g2o text: ``gtsam.readG2o``);
 - ``dynamic.csv``              with dynamic handling on: features flagged per frame, per method and fused;
 - ``report/``                  with ``output.report`` (default on): ``index.html`` and the plots behind it
-                               (trajectory, ATE over time, RPE, timing, dynamic strip; see slam.report).
-For ``dynslam export`` (slam.run_artifacts): ``masks/`` (keyframes' dynamic masks), ``keyframes/``
+                               (trajectory, ATE over time, RPE, timing, dynamic strip; see slam.run.report).
+For ``dynslam export`` (slam.run.run_artifacts): ``masks/`` (keyframes' dynamic masks), ``keyframes/``
 (keyframe images, when the dataset cannot give them back), ``map.npz`` and ``map_sparse.ply``.
 With ``save_map`` the final map is also written (dynslam-map .npz, see backend.map_io), atomically;
 with ``prior_map`` the run localises against that fixed map instead of building one.
 Final files are written atomically. Ctrl-C stops the run after the frame being processed and every
-result is still written (``slam.interrupts``); ``summary.json`` then says ``"interrupted": true``.
-Frames are checked before processing (``slam.input_checks``): a colour image of the wrong size is
+result is still written (``slam.run.interrupts``); ``summary.json`` then says ``"interrupted": true``.
+Frames are checked before processing (``slam.run.input_checks``): a colour image of the wrong size is
 skipped with a warning, frames without any depth are reported.
 """
 from __future__ import annotations
@@ -43,15 +43,15 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from slam.config import SlamConfig
+from slam.core.config import SlamConfig
 from slam.datasets.base import RGBDDataset
-from slam.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
-from slam.input_checks import InputChecks
-from slam.interrupts import DeferredInterrupt
-from slam.system import FrameOutput, System
-from slam.atomic_io import ensure_output_dir, write_text_atomic
-from slam.run_artifacts import RunArtifacts, needs_keyframe_copies
-from slam.trajectory import TumStreamWriter, format_tum_line, tum_rows_from_poses, write_tum
+from slam.run.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
+from slam.run.input_checks import InputChecks
+from slam.run.interrupts import DeferredInterrupt
+from slam.runtime.system import FrameOutput, System
+from slam.core.atomic_io import ensure_output_dir, write_text_atomic
+from slam.run.run_artifacts import RunArtifacts, needs_keyframe_copies
+from slam.run.trajectory import TumStreamWriter, format_tum_line, tum_rows_from_poses, write_tum
 
 log = logging.getLogger("dynslam")
 
@@ -141,7 +141,7 @@ class Pipeline:
         write_text_atomic(self.output_dir / "config.yaml", self.config.to_yaml())
 
     def _run_pipeline(self, interrupt: DeferredInterrupt) -> None:
-        from slam.report import make_strip_recorder
+        from slam.run.report import make_strip_recorder
 
         self.dynamic_strip = make_strip_recorder(self.config, self._expected_frames())
         with TumStreamWriter(self.output_dir / "trajectory_online.txt") as online:
@@ -196,7 +196,7 @@ class Pipeline:
         self.summary.skipped_files = [f"{p}: {why}" for p, why in skipped]
         self.summary.no_depth_frames = list(self.checks.no_depth_frames)
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
-        from slam.trajectory_formats import export_formats
+        from slam.run.trajectory_formats import export_formats
 
         export_formats(self.output_dir, self.config.output.trajectory_formats)
 
@@ -256,10 +256,10 @@ class Pipeline:
         return total if self.max_frames is None else min(total, self.max_frames)
 
     def _write_report(self) -> None:
-        """report/: plots and index.html (slam.report). Never fails the run: the results are written."""
+        """report/: plots and index.html (slam.run.report). Never fails the run: the results are written."""
         if not self.config.output.report:
             return
-        from slam.report import write_report
+        from slam.run.report import write_report
 
         strip = getattr(self, "dynamic_strip", None)
         try:

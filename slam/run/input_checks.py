@@ -1,4 +1,4 @@
-"""Checks on every frame a run reads, before the System sees it (used by ``slam.pipeline``).
+"""Checks on every frame a run reads, before the System sees it (used by ``slam.run.pipeline``).
 
 - A colour image whose size differs from the camera's (``camera.width`` x ``camera.height``) would be
   projected with intrinsics that do not belong to it: every pose from it would be wrong. The frame
@@ -9,8 +9,8 @@
   follows it against the map without depth, or reports it LOST; no landmark comes from it. A
   stretch of such frames is reported once when it starts and once when depth comes back, and the
   frames are listed in the summary's ``no_depth_frames``.
-- ``clean_depth``: NaN, infinite and negative depths (a float depth image's "no measurement") become
-  0, the invalid value everything downstream expects.
+- NaN, infinite and negative depths become 0 in ``System.process`` itself
+  (``slam.runtime.inputs.clean_depth``), whatever feeds it.
 """
 from __future__ import annotations
 
@@ -26,14 +26,6 @@ from slam.datasets.tum import DatasetError, DatasetWarning
 log = logging.getLogger("dynslam")
 
 WRONG_SIZE_LIMIT = 5   # wrong-size frames before any good one: the camera config is wrong, not the frames
-
-
-def clean_depth(depth: np.ndarray) -> np.ndarray:
-    """``depth`` with NaN / inf / negative values set to 0 (a copy only when there are any)."""
-    valid = (depth >= 0) & (depth < np.inf)   # False for NaN (every comparison is), -inf, negatives, +inf
-    if valid.all():
-        return depth
-    return np.where(valid, depth, 0).astype(np.float32)
 
 
 def frame_source(frame: RGBDFrame, dataset_name: str, depth: bool = False) -> str:

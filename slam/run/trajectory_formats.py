@@ -1,8 +1,8 @@
 """Trajectory files in the TUM, KITTI and EuRoC formats, and their names in a results folder.
 
-Poses are 4x4 camera-to-world ``T_wc`` matrices, as everywhere in dynslam (see ``slam.trajectory``).
+Poses are 4x4 camera-to-world ``T_wc`` matrices, as everywhere in dynslam (see ``slam.run.trajectory``).
 
-* TUM (default, ``slam.trajectory``): ``timestamp tx ty tz qx qy qz qw`` per line, quaternion last.
+* TUM (default, ``slam.run.trajectory``): ``timestamp tx ty tz qx qy qz qw`` per line, quaternion last.
 * KITTI: per line the 12 values of the top 3x4 block of ``T_wc``, row-major, space-separated, no
   header (the KITTI devkit reads plain numbers). KITTI poses carry no time, so every KITTI file
   ``<name>.kitti.txt`` has a companion ``<name>.kitti.times.txt`` with one timestamp (s) per line,
@@ -32,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.atomic_io import write_text_atomic
-from slam.config import TRAJECTORY_FORMATS
-from slam.trajectory import (PathLike, TrajectoryFormatError, _check_trajectory, matrix_to_quaternion,
+from slam.core.atomic_io import write_text_atomic
+from slam.core.config import TRAJECTORY_FORMATS
+from slam.run.trajectory import (PathLike, TrajectoryFormatError, _check_trajectory, matrix_to_quaternion,
                              poses_from_tum_rows, read_tum)
 
 # Kinds of trajectory in a results folder -> the stem shared by all their files.
@@ -112,7 +112,7 @@ def write_euroc(path: PathLike, stamps: np.ndarray, poses: np.ndarray) -> Path:
 
 def write_trajectory(path: PathLike, fmt: str, stamps: np.ndarray, poses: np.ndarray) -> list[Path]:
     """Write a trajectory in ``fmt``; returns the files written (two for KITTI)."""
-    from slam.trajectory import write_tum
+    from slam.run.trajectory import write_tum
 
     if check_format(fmt) == "tum":
         write_tum(path, stamps, poses)
