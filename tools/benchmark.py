@@ -6,9 +6,16 @@
     python tools/benchmark.py --peer ../orb-venv/bin/python     # also run ORB-SLAM3 in that venv
     python tools/benchmark.py --blackout 185:30                 # blank 30 frames: relocalization timing
 
-Prints a Markdown table (ATE RMSE; median ms per frame per module) and writes it with the raw
-numbers to ``--output`` (benchmark.md, benchmark.json). Targets are reported, not asserted, so a
-slow machine gives numbers rather than a failure; ``--check`` turns the targets into an exit code.
+Prints two Markdown tables and writes them with the raw numbers to ``--output`` (benchmark.md,
+benchmark.json):
+- speed: whole-run wall time per frame (what a user waits for: reading, tracking, mapping, loop
+  closing and the final writes, over the frames), tracking latency (a frame in, its pose out) median
+  and p95, back-end milliseconds per keyframe around the 50th/100th/200th/500th keyframe (does the
+  cost grow with the map?), and the stock ORB-SLAM3 peer's tracking median in the same command with
+  the ratio of dynslam's whole-run time to it;
+- accuracy and modules: ATE RMSE, median ms per frame per module, loops and relocalization.
+Targets are reported, not asserted, so a slow machine gives numbers rather than a failure;
+``--check`` turns the targets into an exit code. Run one benchmark at a time (2 cores).
 """
 from __future__ import annotations
 
@@ -27,6 +34,8 @@ SHARED = REPO.parent / "shared"
 DEFAULT_SEQUENCES = [SHARED / "data" / "rgbd_dataset_freiburg1_rpy_first400"]
 MODULES = ("extract", "dynamic", "tracking", "mapping", "backend", "total")
 TARGETS = {"ate_rmse_m": 0.030, "median_total_ms": 60.0}
+KEYFRAME_MARKS = (50, 100, 200, 500)   # back-end cost reported around these keyframe counts
+KEYFRAME_WINDOW = 10                   # ... as the median over the keyframes up to the mark
 
 
 def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides: list[str],
@@ -43,10 +52,17 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
         start, count = (int(x) for x in blackout.split(":"))
         dataset = Blackout(dataset, start, count)
     pipeline = Pipeline(dataset, config, output)
+    start = time.perf_counter()
     summary = pipeline.run()
-    backend_ms = pipeline.system.timer.per_frame("backend")
+    whole_run_s = time.perf_counter() - start
+    timer = pipeline.system.timer
+    backend_ms = timer.per_frame("backend")
     keyframe_ms = backend_ms[backend_ms > 0]
+    total_ms = timer.per_frame("total")
     return {
+        "whole_run_ms_per_frame": 1e3 * whole_run_s / max(summary.frames, 1),
+        "latency_ms": {"median": float(np.median(total_ms)), "p95": float(np.percentile(total_ms, 95))},
+        "backend_ms_at_keyframes": backend_cost_at_marks(keyframe_ms),
         "system": "dynslam", "sequence": sequence.name, "frames": summary.frames, "tracked": summary.tracked,
         "keyframes": summary.keyframes, "ate_rmse_m": summary.ate_rmse_m,
         "median_ms": {m: summary.timing_ms.get(m, {}).get("median_ms", 0.0) for m in MODULES},
@@ -54,6 +70,31 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
         "backend_ms_per_keyframe": float(np.median(keyframe_ms)) if len(keyframe_ms) else 0.0,
         **_place_recognition(summary.place_recognition),
     }
+
+
+def backend_cost_at_marks(keyframe_ms: np.ndarray) -> dict[int, float]:
+    """Median back-end ms of the KEYFRAME_WINDOW keyframes up to each mark the run reached."""
+    return {mark: float(np.median(keyframe_ms[mark - KEYFRAME_WINDOW:mark]))
+            for mark in KEYFRAME_MARKS if len(keyframe_ms) >= mark}
+
+
+def speed_table(rows: list[dict]) -> str:
+    """Whole-run time, latency and back-end growth of each dynslam row, beside the peer's tracking."""
+    peers = {r["sequence"]: r for r in rows if r["system"] != "dynslam"}
+    marks = " | ".join(f"backend ms/kf @{m}" for m in KEYFRAME_MARKS)
+    lines = [f"| sequence | whole-run ms/frame | latency median | latency p95 | {marks} | ORB-SLAM3 tracking "
+             "median | ratio (whole run / peer) |", "|---|" + "---|" * (5 + len(KEYFRAME_MARKS))]
+    for r in rows:
+        if r["system"] != "dynslam":
+            continue
+        at = r["backend_ms_at_keyframes"]
+        peer = peers.get(r["sequence"])
+        peer_ms = peer["median_ms"]["total"] if peer else None
+        ratio = f"{r['whole_run_ms_per_frame'] / peer_ms:.1f}x" if peer_ms else "–"
+        lines.append(f"| {r['sequence']} | {r['whole_run_ms_per_frame']:.1f} | {r['latency_ms']['median']:.1f} | "
+                     f"{r['latency_ms']['p95']:.1f} | " + " | ".join(_num(at.get(m)) for m in KEYFRAME_MARKS)
+                     + f" | {_num(peer_ms)} | {ratio} |")
+    return "\n".join(lines)
 
 
 def _place_recognition(report: dict) -> dict:
@@ -111,8 +152,10 @@ def aggregate(runs: list[dict]) -> dict:
     out = dict(runs[0])
     out["ate_rmse_m"] = float(np.median([r["ate_rmse_m"] for r in runs]))
     out["median_ms"] = {m: float(np.median([r["median_ms"].get(m, 0.0) for r in runs])) for m in runs[0]["median_ms"]}
-    for key in ("mean_total_ms", "backend_ms_per_keyframe", "loop_ms_per_keyframe", "loop_ms_max"):
+    for key in ("mean_total_ms", "backend_ms_per_keyframe", "loop_ms_per_keyframe", "loop_ms_max",
+                "whole_run_ms_per_frame"):
         out[key] = float(np.median([r[key] for r in runs]))
+    out["latency_ms"] = {k: float(np.median([r["latency_ms"][k] for r in runs])) for k in ("median", "p95")}
     out["repeats"] = len(runs)
     return out
 
@@ -142,7 +185,7 @@ def main(argv=None) -> int:
         if args.peer:
             with tempfile.TemporaryDirectory() as tmp:
                 rows.append(run_peer(args.peer, seq, Path(tmp)))
-    table = markdown_table(rows)
+    table = speed_table(rows) + "\n\n" + markdown_table(rows)
     stamp = time.strftime("%Y-%m-%d %H:%M")
     (args.output / "benchmark.md").write_text(f"Benchmark {stamp}\n\n{table}\n")
     (args.output / "benchmark.json").write_text(json.dumps(rows, indent=2) + "\n")
