@@ -252,12 +252,11 @@ def _config_options(p) -> None:
 
 def _slam_parsers(sub) -> None:
     """run and demo: the commands that run SLAM."""
-    run = sub.add_parser("run", help="run SLAM on a TUM/Bonn folder, a ROS 1/2 bag or an image folder")
+    run = _command(sub, "run", help="run SLAM on a TUM/Bonn folder, a ROS 1/2 bag or an image folder")
     run.add_argument("dataset", help="TUM/Bonn folder (rgb.txt, depth.txt), ROS bag (.bag file or ROS 2 bag "
                                      "folder), or a folder with color/, depth/ and intrinsics.yaml")
     run.add_argument("--output", "-o", help="results folder (default results/<name>_<time>)")
     run.add_argument("--max-frames", type=int, help="stop after this many frames")
-    run.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
     run.add_argument("--blackout", metavar="START:COUNT",
                      help="fault injection: blank COUNT frames from frame START (tests recovery)")
     run.add_argument("--save-map", metavar="PATH", help="save the final map to PATH (.npz, written atomically)")
@@ -266,39 +265,38 @@ def _slam_parsers(sub) -> None:
     _config_options(run)
     run.set_defaults(func=cmd_run)
 
-    demo = sub.add_parser("demo", help="generate a synthetic RGB-D room and run SLAM on it")
-    demo.add_argument("--frames", type=int, default=120)
-    demo.add_argument("--seed", type=int, default=0)
+    demo = _command(sub, "demo", help="generate a synthetic RGB-D room and run SLAM on it")
+    demo.add_argument("--frames", type=int, default=120, help="length of the generated sequence (default 120)")
+    demo.add_argument("--seed", type=int, default=0, help="seed of the room, the path and the movers (default 0)")
     demo.add_argument("--movers", choices=DEMO_MOVERS, default="none",
                       help="moving objects in the room (their true boxes stand in for the detector); "
                            "add -c dynamic_all to handle them")
-    demo.add_argument("--output", "-o")
-    demo.add_argument("--quiet", "-q", action="store_true")
+    demo.add_argument("--output", "-o", help="results folder (default results/synthetic_<time>)")
     _config_options(demo)
     demo.set_defaults(func=cmd_demo)
 
 
 def _result_parsers(sub) -> None:
     """eval, export-trajectory and export: working on finished runs."""
-    ev = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth")
-    ev.add_argument("groundtruth")
-    ev.add_argument("estimate")
+    ev = _command(sub, "eval", help="ATE and RPE of a TUM trajectory against ground truth")
+    ev.add_argument("groundtruth", help="ground-truth trajectory (TUM format)")
+    ev.add_argument("estimate", help="estimated trajectory (TUM format, e.g. a run's trajectory.txt)")
     ev.add_argument("--max-dt", type=float, default=0.02, help="timestamp association tolerance (s)")
     ev.add_argument("--json", action="store_true", help="print the full report as JSON")
     ev.set_defaults(func=cmd_eval)
 
-    xt = sub.add_parser("export-trajectory", help="write a results folder's trajectory as KITTI or EuRoC",
+    xt = _command(sub, "export-trajectory", help="write a results folder's trajectory as KITTI or EuRoC",
                         description="Converts trajectory.txt (or the online / keyframe file) of a results "
                                     "folder; names: trajectory.kitti.txt + trajectory.kitti.times.txt, "
                                     "trajectory.euroc.csv, trajectory_online.*, keyframes.* (see README, Outputs).")
     xt.add_argument("results_dir", help="a dynslam results folder")
-    xt.add_argument("--format", "-f", required=True, choices=TRAJECTORY_FORMAT_NAMES)
+    xt.add_argument("--format", "-f", required=True, choices=TRAJECTORY_FORMAT_NAMES, help="output format")
     which = xt.add_mutually_exclusive_group()
     which.add_argument("--online", action="store_true", help="the causal poses (trajectory_online.txt)")
     which.add_argument("--keyframes", action="store_true", help="the optimised keyframes (keyframes.txt)")
     xt.set_defaults(func=cmd_export_trajectory)
 
-    exp = sub.add_parser("export", help="sparse and dense (TSDF) maps of a finished run")
+    exp = _command(sub, "export", help="sparse and dense (TSDF) maps of a finished run")
     exp.add_argument("results", nargs="?", help="results folder of a run (or give --map)")
     exp.add_argument("--map", metavar="FILE", help="a saved map (.npz) instead of a results folder")
     exp.add_argument("--dataset", metavar="PATH", help="read keyframe images from this TUM/Bonn folder")
@@ -316,16 +314,16 @@ def _result_parsers(sub) -> None:
 
 def _tool_parsers(sub) -> None:
     """vocabulary, download and config."""
-    voc = sub.add_parser("vocabulary", help="build a place-recognition vocabulary from images")
+    voc = _command(sub, "vocabulary", help="build a place-recognition vocabulary from images")
     voc.add_argument("images", nargs="+", help="folders searched recursively for PNG/JPEG images")
     voc.add_argument("--output", "-o", required=True, help="vocabulary file (.npz)")
     voc.add_argument("--step", type=int, default=5, help="use every STEP-th image")
-    voc.add_argument("--branches", type=int, default=10)
-    voc.add_argument("--levels", type=int, default=3)
-    voc.add_argument("--seed", type=int, default=0)
+    voc.add_argument("--branches", type=int, default=10, help="children per node of the vocabulary tree")
+    voc.add_argument("--levels", type=int, default=3, help="depth of the tree (words = branches^levels at most)")
+    voc.add_argument("--seed", type=int, default=0, help="seed of the k-majority clustering")
     voc.set_defaults(func=cmd_vocabulary)
 
-    dl = sub.add_parser("download", help="download and unpack an official TUM RGB-D or Bonn sequence")
+    dl = _command(sub, "download", help="download and unpack an official TUM RGB-D or Bonn sequence")
     dl.add_argument("kind", help="tum or bonn")
     dl.add_argument("sequence", help="e.g. freiburg1_xyz (tum) or crowd (bonn); full folder names work too")
     dl.add_argument("--output", "-o", default=".", help="folder to unpack into (default: current folder)")
@@ -335,14 +333,38 @@ def _tool_parsers(sub) -> None:
     dl.add_argument("--keep-archive", action="store_true", help="keep the archive after unpacking")
     dl.set_defaults(func=cmd_download)
 
-    cfg = sub.add_parser("config", help="print the default (or resolved) configuration as YAML")
+    cfg = _command(sub, "config", help="print the default (or resolved) configuration as YAML")
     _config_options(cfg)
     cfg.set_defaults(func=cmd_config)
 
 
+def _verbosity_options(parser: argparse.ArgumentParser, default) -> None:
+    parser.add_argument("-v", "--verbose", action="store_true", default=default, help="debug logging")
+    parser.add_argument("-q", "--quiet", action="store_true", default=default,
+                        help="no progress bar or progress lines, warnings and errors only")
+
+
+def _command(sub, name: str, **kwargs) -> argparse.ArgumentParser:
+    """A subcommand that also takes -v / -q after its name (``dynslam run SEQ -q``). Its defaults are
+    SUPPRESS, so an option given before the subcommand is not reset by the subcommand's parser."""
+    common = argparse.ArgumentParser(add_help=False)
+    _verbosity_options(common, argparse.SUPPRESS)
+    return sub.add_parser(name, parents=[common], **kwargs)
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("dynslam")
+    except PackageNotFoundError:   # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dynslam", description="RGB-D SLAM for dynamic scenes")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--version", action="version", version=f"dynslam {_version()}")
+    _verbosity_options(parser, False)
     sub = parser.add_subparsers(dest="command", required=True)
     _slam_parsers(sub)
     _result_parsers(sub)
@@ -352,7 +374,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="dynslam: %(message)s")
+    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    logging.basicConfig(level=level, format="dynslam: %(message)s")
     warnings.simplefilter("default")
     warnings.formatwarning = lambda message, category, *_args, **_kw: f"dynslam: warning: {message}\n"
     from slam.core.errors import DynslamError

@@ -400,3 +400,42 @@ def test_run_writes_the_keyframe_graph(tmp_path):
     assert values.size() == summary["keyframes"] and graph.size() >= summary["keyframes"] - 1
     data = json.loads((out / "graph.json").read_text())
     assert len(data["keyframes"]) == summary["keyframes"]
+
+
+# --- conventions -----------------------------------------------------------------------------------
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.startswith("dynslam ")
+
+
+@pytest.mark.parametrize("argv", [["-v", "config"], ["config", "-v"], ["config", "--verbose"]])
+def test_verbose_before_or_after_the_subcommand(argv, capsys):
+    from slam.cli import build_parser
+
+    assert build_parser().parse_args(argv).verbose is True
+    assert build_parser().parse_args(["config"]).verbose is False
+
+
+def test_quiet_after_the_subcommand_for_every_command():
+    from slam.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["run", "SEQ", "-q"]).quiet is True
+    assert parser.parse_args(["-q", "run", "SEQ"]).quiet is True
+    assert parser.parse_args(["eval", "a", "b", "--quiet"]).quiet is True
+    assert parser.parse_args(["run", "SEQ"]).quiet is False
+
+
+def test_every_option_of_every_command_has_help():
+    import argparse
+
+    from slam.cli import build_parser
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    missing = [f"{name} {'/'.join(a.option_strings) or a.dest}" for name, sub in commands.items()
+               for a in sub._actions if not a.help and not isinstance(a, argparse._HelpAction)]
+    assert not missing, missing
