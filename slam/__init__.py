@@ -1,0 +1,42 @@
+"""dynslam: RGB-D SLAM that stays accurate when people and objects move through the scene.
+
+    from slam import System, load_config
+    system = System(load_config("tum_fr1"))
+    out = system.process(bgr_uint8, depth_metres_float32, timestamp)   # out.T_wc: 4x4 camera-to-world or None
+
+Layers (README, "Layout"): ``slam.core`` < ``frontend``, ``backend``, ``slam.datasets`` < ``slam.runtime``
+< ``slam.run`` < ``slam.cli``."""
+from __future__ import annotations
+
+from typing import Any
+
+# name -> module: imported on first use (PEP 562), so importing one submodule stays light
+_PUBLIC = {
+    "System": "slam.runtime.system",
+    "FrameOutput": "slam.runtime.system",
+    "Pipeline": "slam.run.pipeline",
+    "RunSummary": "slam.run.pipeline",
+    "SlamConfig": "slam.core.config",
+    "load_config": "slam.core.config",
+    "ConfigError": "slam.core.config",
+    "DynslamError": "slam.core.errors",
+    "open_dataset": "slam.datasets",
+    "SyntheticSequence": "slam.datasets",
+    "TumDataset": "slam.datasets",
+    "evaluate_files": "slam.run.evaluation",
+}
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _PUBLIC:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from importlib import import_module
+
+    value = getattr(import_module(_PUBLIC[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_PUBLIC))

@@ -137,3 +137,16 @@ def test_the_checker_sees_lazy_and_relative_imports():
     (slam.runtime.system's lazy map_io import) and a relative one (slam.datasets' own modules)."""
     assert "backend.map_io" in GRAPH["slam.runtime.system"]
     assert "slam.datasets.tum" in GRAPH["slam.datasets.synthetic"]
+
+
+def test_packages_export_their_public_names():
+    """``from backend import FactorGraphBackend`` (the README's example) and the like resolve, for
+    every name each package lists, without importing what is not asked for."""
+    import importlib
+
+    for package in PACKAGES:
+        module = importlib.import_module(package)
+        assert module.__all__, package
+        for name in module.__all__:
+            assert getattr(module, name) is not None, f"{package}.{name}"
+        assert (REPO / package / "py.typed").is_file(), f"{package} lacks py.typed"
