@@ -150,3 +150,15 @@ def test_packages_export_their_public_names():
         for name in module.__all__:
             assert getattr(module, name) is not None, f"{package}.{name}"
         assert (REPO / package / "py.typed").is_file(), f"{package} lacks py.typed"
+
+
+def test_pyproject_lists_every_package_and_ships_the_presets():
+    """pyproject.toml names its packages one by one (configs/ is mapped to slam.presets); a new
+    subpackage missing from that list would be missing from the wheel."""
+    import tomllib
+
+    setuptools_cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    in_tree = {module_name(p.parent / "__init__.py") for pkg in PACKAGES for p in (REPO / pkg).rglob("__init__.py")}
+    assert set(setuptools_cfg["packages"]) == in_tree | {"slam.presets"}
+    assert setuptools_cfg["package-dir"] == {"slam.presets": "configs"}
+    assert setuptools_cfg["package-data"]["slam.presets"] == ["*.yaml"]

@@ -6,6 +6,8 @@ first problem, so a typo in a user's YAML never silently falls back to a default
 """
 from __future__ import annotations
 
+import importlib.resources
+
 import dataclasses
 import typing
 from dataclasses import dataclass, field
@@ -19,7 +21,18 @@ from slam.core.loop_config import NON_NEGATIVE as LOOP_NON_NEGATIVE, POSITIVE as
 from slam.core.loop_config import UNIT_INTERVAL as LOOP_UNIT_INTERVAL, LoopConfig, validate_loop
 from slam.core.errors import DynslamError
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+
+
+def _preset_dir() -> Path:
+    """configs/ of the checkout, shipped in the wheel as the package slam.presets (pyproject.toml);
+    a source tree that was never installed has only the folder beside the packages."""
+    try:
+        return Path(str(importlib.resources.files("slam.presets")))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parents[2] / "configs"
+
+
+CONFIG_DIR = _preset_dir()
 
 
 class ConfigError(DynslamError, ValueError):
