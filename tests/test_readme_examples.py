@@ -51,3 +51,17 @@ def test_system_example_of_the_package_docstring_runs():
                        "camera.distortion": [0.0] * 5}
     exec(compile(code, "slam/__init__.py", "exec"), names)   # noqa: S102
     assert names["out"].T_wc is not None and np.allclose(names["out"].T_wc, np.eye(4))
+
+
+def test_system_example_runs_on_a_generated_frame():
+    block = next(b for b in readme_python_blocks() if "System(load_config" in b)
+    from slam.datasets import SyntheticSequence
+
+    seq = SyntheticSequence(n_frames=2)
+    fx, fy, cx, cy = seq.intrinsics
+    frame = seq.frame(0)
+    camera = {"camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy, "camera.distortion": [0.0] * 5}
+    block = block.replace('load_config("tum_fr1")', 'load_config("tum_fr1", overrides=CAMERA)')
+    names = {"CAMERA": camera, "bgr": frame.rgb, "depth_m": frame.depth, "t": frame.timestamp}
+    exec(compile(block, "README.md", "exec"), names)   # noqa: S102
+    assert names["out"].T_wc is not None and names["tracked"].all() and len(names["stamps"]) == 1

@@ -34,7 +34,7 @@ from slam.core.camera import PinholeCamera
 from slam.core.config import SlamConfig
 from slam.core.frame import FeatureFrame, MapPoints
 from slam.core.geometry import invert, pose_distance
-from slam.runtime.inputs import clean_depth
+from slam.runtime.inputs import check_inputs, clean_depth
 from slam.core.timing import ModuleTimer
 
 
@@ -132,6 +132,7 @@ class System:
 
     # --- public -----------------------------------------------------------------------------------
     def process(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, index: Optional[int] = None) -> FrameOutput:
+        check_inputs(rgb, depth, timestamp, self.camera.width, self.camera.height)
         index = len(self._frames) if index is None else index
         depth = clean_depth(depth)   # NaN / inf / negative (float depth's "no measurement") -> 0 = invalid
         with self.timer.measure("extract"):
