@@ -355,9 +355,12 @@ def test_tracker_follows_the_orbit(sequence, config):
 
 
 class DynamicAt:
-    """A dynamic filter that marks every feature of the given frame indices dynamic."""
+    """A dynamic filter that marks every feature of the given frame indices dynamic (no pixel mask, so
+    no static refill: the frame must be lost)."""
 
     name = "test_all_dynamic"
+    stats = None
+    last_mask = None
 
     def __init__(self, indices):
         self.indices = set(indices)
@@ -366,6 +369,9 @@ class DynamicAt:
         return np.full(len(frame), 1.0 if frame.index in self.indices else 0.0)
 
     def end_frame(self, T_cw, is_keyframe) -> None:
+        pass
+
+    def close(self) -> None:
         pass
 
 

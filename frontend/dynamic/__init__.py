@@ -8,14 +8,29 @@ lives outside this package because it also builds the detector, which imports th
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Optional, Protocol
 
 import numpy as np
 
 from slam.core.frame import FeatureFrame
 
+@dataclass
+class DynamicStats:
+    frames: int = 0
+    flagged: dict[str, list[int]] = field(default_factory=dict)   # method -> per-frame counts ("fused" too)
+
+    def add(self, name: str, count: int) -> None:
+        self.flagged.setdefault(name, []).append(count)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        return {name: {"mean_flagged": float(np.mean(c)), "max_flagged": int(np.max(c)),
+                       "frames_with_flags": int(np.count_nonzero(c))} for name, c in self.flagged.items() if c}
+
+
 class DynamicFilter(Protocol):
     name: str
+    stats: Optional[DynamicStats]   # per-frame flag counts (None for the null filter)
 
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
@@ -26,14 +41,28 @@ class DynamicFilter(Protocol):
         """The tracked pose of the frame just processed (None if lost) and its keyframe status."""
         ...
 
+    @property
+    def last_mask(self) -> Optional[np.ndarray]:
+        """HxW float dynamic probability per pixel of the last frame (None when there is none)."""
+        ...
+
+    def close(self) -> None:
+        """Persist what is worth keeping (e.g. the detection cache)."""
+        ...
+
 
 class StaticWorld:
     """The null filter: every feature is static."""
 
     name = "none"
+    stats = None
+    last_mask = None
 
     def process(self, frame, rgb, gray, depth, predicted_T_cw, last_T_cw) -> np.ndarray:
         return np.zeros(len(frame))
 
     def end_frame(self, T_cw, is_keyframe) -> None:
+        return None
+
+    def close(self) -> None:
         return None

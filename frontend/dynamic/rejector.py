@@ -7,32 +7,19 @@ rejected.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
 import cv2
 import numpy as np
 
+from frontend.dynamic import DynamicStats
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.fusion import fuse
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import DynamicConfig
 from slam.core.frame import FeatureFrame
 from slam.core.timing import ModuleTimer
-
-
-@dataclass
-class DynamicStats:
-    frames: int = 0
-    flagged: dict[str, list[int]] = field(default_factory=dict)   # method -> per-frame counts ("fused" too)
-
-    def add(self, name: str, count: int) -> None:
-        self.flagged.setdefault(name, []).append(count)
-
-    def summary(self) -> dict[str, dict[str, float]]:
-        return {name: {"mean_flagged": float(np.mean(c)), "max_flagged": int(np.max(c)),
-                       "frames_with_flags": int(np.count_nonzero(c))} for name, c in self.flagged.items() if c}
 
 
 class DynamicRejector:

@@ -187,7 +187,7 @@ class Pipeline:
         self.summary.landmarks = self.system.num_landmarks
         self.summary.timing_ms = self.system.timer.summary()
         self.summary.dynamic_methods = list(self.config.dynamic.methods)
-        stats = getattr(self.system.dynamic_filter, "stats", None)
+        stats = self.system.dynamic_filter.stats
         if stats is not None:
             self.summary.dynamic_flagged = stats.summary()
             self._write_dynamic_counts(stats.flagged)

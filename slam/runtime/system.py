@@ -16,7 +16,6 @@ from typing import Optional
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from backend.local_mapping import LocalMapper
 from backend.loop_closing import LoopCloser
@@ -26,14 +25,15 @@ from backend.pnp_verification import PnpParams
 from backend.relocalization import Relocalizer
 from frontend.dynamic import DynamicFilter
 from frontend.dynamic_filter import build_dynamic_filter
-from frontend.dynamic.base import keypoints_in_mask
 from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_keyframe
 from frontend.orb_extractor import OrbExtractor
+from frontend.static_refill import refill_static
 from frontend.tracker import Tracker, TrackingResult, TrackingState
 from slam.core.camera import PinholeCamera
 from slam.core.config import SlamConfig
 from slam.core.frame import FeatureFrame, MapPoints
 from slam.core.geometry import invert, pose_distance
+from slam.runtime.frame_log import FrameLog
 from slam.runtime.inputs import check_inputs, clean_depth
 from slam.core.timing import ModuleTimer
 
@@ -47,15 +47,6 @@ class FrameOutput:
     is_keyframe: bool
     n_features: int
     n_tracked: int
-
-
-@dataclass
-class _FrameRecord:
-    """A frame's pose relative to its reference keyframe, so it follows that keyframe's estimate."""
-
-    timestamp: float
-    reference_kf: int
-    T_kf_c: Optional[np.ndarray]   # None = not tracked
 
 
 class _MapView:
@@ -105,7 +96,7 @@ class System:
             self.mapper.map = prior_map
         self._map_view = _MapView(self.mapper, config.tracking.local_keyframes, config.tracking.covisible_per_keyframe)
         self._whole_map_view = _WholeMapView(self.mapper) if localization_only else None
-        self._frames: list[_FrameRecord] = []
+        self._frames = FrameLog()
         self._last_keyframe_frame = -1
         self._reference_kf = -1
         self.last_frame: Optional[FeatureFrame] = None   # features (with dynamic_prob) of the last frame
@@ -157,25 +148,14 @@ class System:
         return output
 
     def _refill_static(self, frame: FeatureFrame, gray: np.ndarray, depth: np.ndarray) -> FeatureFrame:
-        """When moving objects hold most features, add features from the static rest of the image:
-        the 1000-feature budget otherwise goes to the people and tracking starves."""
-        threshold = self.config.tracking.dynamic_threshold
-        if np.sum(frame.dynamic_prob < threshold) >= self.config.tracking.min_static_features:
+        """frontend.static_refill, where new features could become landmarks (outside person boxes
+        and masks); the fused mask is only computed when static features run short."""
+        tracking = self.config.tracking
+        if np.sum(frame.dynamic_prob < tracking.dynamic_threshold) >= tracking.min_static_features:
             return frame
-        mask = getattr(self.dynamic_filter, "last_mask", None)
-        if mask is None:
-            return frame
-        # Only where the new features could become landmarks: outside person boxes and masks.
-        admissible = min(threshold, self.config.backend.landmark_max_dynamic_prob)
-        allowed = (mask < admissible).astype(np.uint8) * 255
-        extra = self.extractor.extract(gray, depth, frame.index, frame.timestamp, mask=allowed)
-        if len(extra) == 0:
-            return frame
-        if len(frame):
-            distance, _ = cKDTree(frame.uv_raw).query(extra.uv_raw)
-            extra = extra.subset(distance > 2.0)  # not a re-detection of a feature we have
-        extra.dynamic_prob = keypoints_in_mask(mask, extra.uv_raw).astype(float)
-        return frame.append(extra)
+        admissible = min(tracking.dynamic_threshold, self.config.backend.landmark_max_dynamic_prob)
+        return refill_static(frame, gray, depth, self.dynamic_filter.last_mask, self.extractor,
+                             tracking.dynamic_threshold, tracking.min_static_features, admissible)
 
     def _keypoint_colors(self, frame: FeatureFrame) -> np.ndarray:
         """BGR colour under each keypoint (grey images give grey colours), for coloured map exports."""
@@ -189,7 +169,7 @@ class System:
     @property
     def last_dynamic_mask(self) -> Optional[np.ndarray]:
         """HxW float dynamic probability per pixel of the last frame (None with dynamic handling off)."""
-        return getattr(self.dynamic_filter, "last_mask", None)
+        return self.dynamic_filter.last_mask
 
     def place_recognition_report(self) -> tuple[list[dict], dict]:
         """(loops with their keyframes' timestamps, counts and ms per keyframe / per relocalization)."""
@@ -217,9 +197,7 @@ class System:
 
     def close(self) -> None:
         """Release what the components hold open (e.g. save the detection cache)."""
-        close = getattr(self.dynamic_filter, "close", None)
-        if callable(close):
-            close()
+        self.dynamic_filter.close()
 
     @property
     def num_keyframes(self) -> int:
@@ -235,14 +213,7 @@ class System:
         Each tracked frame's pose is its reference keyframe's optimised pose composed with the
         frame's pose relative to it; untracked frames hold NaN poses.
         """
-        kf_poses = self.mapper.map.kf_T_wc
-        stamps = np.array([f.timestamp for f in self._frames])
-        poses = np.full((len(self._frames), 4, 4), np.nan)
-        tracked = np.array([f.T_kf_c is not None for f in self._frames], dtype=bool)
-        for i, f in enumerate(self._frames):
-            if f.T_kf_c is not None:
-                poses[i] = kf_poses[f.reference_kf] @ f.T_kf_c
-        return stamps, poses, tracked
+        return self._frames.trajectory(self.mapper.map.kf_T_wc)
 
     def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         kfs = self.mapper.map.keyframes
@@ -252,7 +223,7 @@ class System:
     def _initialize(self, frame: FeatureFrame) -> FrameOutput:
         static = frame.dynamic_prob < self.config.tracking.dynamic_threshold
         if int((frame.has_depth & static).sum()) < self.config.tracking.min_init_features:
-            self._frames.append(_FrameRecord(frame.timestamp, -1, None))
+            self._frames.add_lost(frame.timestamp)
             return FrameOutput(frame.index, frame.timestamp, TrackingState.NOT_INITIALIZED, None, False, len(frame), 0)
         T_wc = np.eye(4)
         with self.timer.measure("backend"):
@@ -260,7 +231,7 @@ class System:
         kf = self.mapper.map.keyframes[0]
         self.tracker.initialize(frame, invert(T_wc), kf.landmark_of_keypoint)
         self._reference_kf, self._last_keyframe_frame = 0, len(self._frames)
-        self._frames.append(_FrameRecord(frame.timestamp, 0, np.eye(4)))
+        self._frames.add(frame.timestamp, 0, np.eye(4))
         self._close_loops(0)   # indexes the first keyframe
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, True, len(frame), len(frame))
 
@@ -284,7 +255,7 @@ class System:
             with self.timer.measure("tracking"):
                 result = self.tracker.track(frame, self._map_view)
         if result.state != TrackingState.OK:
-            self._frames.append(_FrameRecord(frame.timestamp, -1, None))
+            self._frames.add_lost(frame.timestamp)
             return FrameOutput(frame.index, frame.timestamp, result.state, None, False, len(frame), 0)
         T_wc = invert(result.T_cw)
         tracked_ids = result.landmark_of_keypoint[result.landmark_of_keypoint >= 0]
@@ -300,7 +271,7 @@ class System:
             self.tracker.adopt_keyframe_landmarks(self.mapper.map.keyframes[insertion.kf_id].landmark_of_keypoint)
             self._reference_kf, self._last_keyframe_frame = insertion.kf_id, len(self._frames)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
-        self._frames.append(_FrameRecord(frame.timestamp, self._reference_kf, T_kf_c))
+        self._frames.add(frame.timestamp, self._reference_kf, T_kf_c)
         if is_keyframe:
             self._close_loops(insertion.kf_id)
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids))
@@ -313,7 +284,7 @@ class System:
             edge = self.loop_closer.process_keyframe(kf_id)
             self.loop_times_ms.append((time.perf_counter() - start) * 1e3)
         if edge is not None or len(self.loop_closer.active_loops()) != n_active:
-            self.tracker.rebase(invert(self.mapper.map.kf_T_wc[kf_id] @ self._frames[-1].T_kf_c))
+            self.tracker.rebase(invert(self.mapper.map.kf_T_wc[kf_id] @ self._frames.last_T_kf_c))
 
     def _localize(self, frame: FeatureFrame) -> FrameOutput:
         """Localisation-only: relocalise against the whole map at the start and after LOST, else
@@ -326,13 +297,13 @@ class System:
             with self.timer.measure("tracking"):
                 result = self.tracker.track(frame, source)
         if result.state != TrackingState.OK:
-            self._frames.append(_FrameRecord(frame.timestamp, -1, None))
+            self._frames.add_lost(frame.timestamp)
             return FrameOutput(frame.index, frame.timestamp, result.state, None, False, len(frame), 0)
         T_wc = invert(result.T_cw)
         tracked_ids = result.landmark_of_keypoint[result.landmark_of_keypoint >= 0]
         self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
-        self._frames.append(_FrameRecord(frame.timestamp, self._reference_kf, T_kf_c))
+        self._frames.add(frame.timestamp, self._reference_kf, T_kf_c)
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, False, len(frame), len(tracked_ids))
 
     def _decide_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray, n_tracked: int) -> bool:
