@@ -1,10 +1,10 @@
 """Sub-point-cloud correlation (CPR-SLAM, Yu, Zheng & Ou 2024, seed 000): geometric, needs no detector.
 
 ``CprMethod(cfg: CprConfig)`` follows the ``DynamicMethod`` protocol (``process`` before tracking,
-``end_frame`` after). Per frame (Sections 3.3-3.8; the point-cloud steps live in ``cpr_icp.py``):
+``end_frame`` after). Per frame (Sections 3.3-3.8; steps 1-3 live in ``cpr_cloud.py``, 4-8 in ``cpr_icp.py``):
 
 1. Point cloud from every ``sample_step``-th row/column of the depth image; depth > ``max_depth`` invalid.
-2. Voxel filter (``voxel_size``): centroid and mean grey value per voxel (Eq. 2), numpy unique + bincount.
+2. Voxel filter (``voxel_size``): centroid and mean grey value per voxel (Eq. 2), index table + bincount.
 3. Moving-least-squares smoothing (``mls_radius``).
 4. K-Means on xyz into ``clusters`` sub-clouds (``kmeans2``, k-means++, seed ``seed``). The paper clusters
    "the depth image", i.e. the geometry; intensity is not a clustering feature.
@@ -56,7 +56,7 @@ Interpretation of the paper, and deviations (numbers are all in ``CprConfig``):
   correspondence is the one of its ``score_candidates`` (4) nearest reference points that minimises
   distance + |intensity difference|, and R(j) is the mean of that minimum over ``score_points`` (800) evenly
   spread source points (the same points for every pose). Intensities are grey / 255, so 0.1 (25 grey levels)
-  weighs like 10 cm. 1 candidate gives the same masks on Bonn and saves ~3 ms.
+  weighs like 10 cm. 1 candidate gives the same masks on Bonn and saves ~2 ms.
 * Eq. 14 subtracts the median without an absolute value; the MAD it names needs |R - median(R)|. Ties (all R
   equal) flag nothing. ``min_score_ratio`` (default 1.0 = off, the paper) optionally also requires
   R(j) > ratio * median(R): the paper's threshold always flags the upper tail, so static scenes lose 1-2 of 10
@@ -75,7 +75,7 @@ Interpretation of the paper, and deviations (numbers are all in ``CprConfig``):
   unknown in ``process``: every frame uses ``sigma_frame`` (2). ``sigma_keyframe`` (5) is used only with
   ``keyframe_recompute``: ``end_frame`` of a keyframe recomputes its mask against the frame 5 back and refines
   it; that mask (weight ``rho_keyframe``) is what later refinements see. Off by default: on Bonn it changed
-  nothing measurable and costs a second pass (~35 ms) per keyframe; sigma = 5 for every frame doubled the
+  nothing measurable and costs a second pass (~20 ms) per keyframe; sigma = 5 for every frame doubled the
   static false positives (larger camera motion, worse sub-poses).
 * Refinement (``refine=True``): any frame may become a keyframe and the back end takes a keyframe's features
   before ``end_frame`` can say so, so the paper's keyframe-only refinement cannot be applied to keyframes
@@ -114,9 +114,12 @@ that mix a person with background (K = 10 is coarse for a crowd). Static scenes 
 sub-clouds whose sub-pose drifted most: a ~1 cm drift of a small sub-cloud's sub-pose moves R of the whole
 cloud by up to ~60 %, even on exact synthetic data.
 
-Time (2-core machine shared with other jobs, load 2-4; median per frame over 144 Bonn frames): cloud 11 ms
-(sampling, voxels, MLS, dense target), K-Means 2.3, dense target tree 3.2, sub-poses 18, correlation 9,
-mask 1.2, refinement 1.7 when on: ~45-47 ms in all (p90 ~52 ms). The paper reports 213 ms on a Jetson Orin.
+Time (2-core machine shared with other jobs, load average ~0.8; median per frame over the 480 Bonn crowd
+frames): cloud 5.2 ms (sampling, voxels, MLS ~3.5, dense target), K-Means 1.9, dense target tree 1.4,
+sub-poses 11.3, correlation 5.6, mask 0.9, refinement ~1.7 when on: ~27 ms in all (p90 ~28 ms; 37.7 ms
+before the whole-array rewrite of voxels, MLS, medians and mask, which left every mask byte-identical). About
+half of it is exact k-nearest-neighbour search in the k-d tree (ICP ~7 ms, correlation ~5 ms), which bounds
+what further vectorising can win. The paper reports 213 ms on a Jetson Orin.
 """
 from __future__ import annotations
 
@@ -129,9 +132,10 @@ import cv2
 import numpy as np
 
 from frontend.dynamic.base import DynamicContext, MethodOutput, keypoints_in_mask
-from frontend.dynamic.cpr_icp import (Cloud, build_cloud, cluster, correlation_scores, mad_threshold,  # noqa: F401
-                                      mls_smooth, sample_grid, sub_poses, voxel_filter, _MIN_CLUSTER_POINTS,
-                                      _smallest_eigvec)
+from frontend.dynamic.cpr_cloud import (Cloud, build_cloud, mls_smooth, sample_grid, voxel_filter,  # noqa: F401
+                                        _smallest_eigvec)
+from frontend.dynamic.cpr_icp import (cluster, correlation_scores, mad_threshold, sub_poses,  # noqa: F401
+                                      _MIN_CLUSTER_POINTS)
 from slam.core.dynamic_config import CprConfig
 from slam.core.geometry import invert
 
@@ -144,14 +148,23 @@ def _disc(radius: int) -> np.ndarray:
 
 
 def samples_to_mask(shape: tuple[int, int], pix: np.ndarray, radius: int) -> np.ndarray:
-    """Disc of ``radius`` px around every (row, col) in ``pix``, then a closing: uint8 {0,1} mask."""
+    """Disc of ``radius`` px around every (row, col) in ``pix``, then a closing: uint8 {0,1} mask.
+
+    Computed on the samples' bounding box grown by 3 * radius + 2 (dilation, then the closing's dilation and
+    erosion): outside it every stage is 0, and the erosion reads the box's inner border only at pixels that
+    are still 0 there, so the result equals the whole-image computation at a fraction of the area."""
     mask = np.zeros(shape, np.uint8)
     if len(pix) == 0:
         return mask
-    mask[pix[:, 0], pix[:, 1]] = 1
+    pad = 3 * radius + 2
+    lo = np.maximum(pix.min(axis=0) - pad, 0)
+    hi = np.minimum(pix.max(axis=0) + pad + 1, shape)
+    roi = np.zeros((hi[0] - lo[0], hi[1] - lo[1]), np.uint8)
+    roi[pix[:, 0] - lo[0], pix[:, 1] - lo[1]] = 1
     kernel = _disc(radius)
-    mask = cv2.dilate(mask, kernel)
-    return cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
+    roi = cv2.dilate(roi, kernel)
+    mask[lo[0]:hi[0], lo[1]:hi[1]] = cv2.morphologyEx(roi, cv2.MORPH_CLOSE, kernel)
+    return mask
 
 
 def refine_mask(history: list[tuple[np.ndarray, float]], current: np.ndarray, rho_current: float, tau: float,

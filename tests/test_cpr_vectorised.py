@@ -1,0 +1,117 @@
+"""The whole-array helpers of the cpr method (frontend/dynamic/cpr_cloud.py, cpr_icp.py, cpr.py) against
+plain per-point / per-segment reference implementations on random input.
+
+Most comparisons are bit-for-bit: the vectorised code repeats the reference arithmetic operation for
+operation, which is what keeps the method's masks unchanged by the speed-ups.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from frontend.dynamic.cpr import samples_to_mask
+from frontend.dynamic.cpr_cloud import Cloud, mls_smooth, voxel_filter
+from frontend.dynamic.cpr_icp import _Rows, correlation_scores, robust_scale
+from slam.core.dynamic_config import CprConfig
+
+
+@pytest.mark.parametrize("lengths", [[150] * 10, [150, 37, 0, 150, 1, 2, 90, 0, 150, 11]])
+def test_segment_medians_are_numpy_medians(lengths):
+    rng = np.random.default_rng(len(lengths) + sum(lengths))
+    starts = np.concatenate([[0], np.cumsum(lengths)])
+    values = rng.gamma(2.0, 0.02, starts[-1])
+    values[::7] = values[1::7][: len(values[::7])]           # exact ties, as distances to one point give
+    rows = _Rows(starts)
+    med, scale = rows.medians(values), rows.robust_scales(values, 0.01)
+    for j, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
+        if a == b:
+            assert np.isnan(med[j])
+            continue
+        assert med[j] == np.median(values[a:b])              # bit for bit
+        assert scale[j] == robust_scale(values[a:b], 0.01)
+
+
+def test_voxel_filter_matches_sorted_unique():
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(-1.0, 2.0, (3000, 3))
+    inten = rng.random(3000)
+    cen, mean_i, inverse = voxel_filter(xyz, inten, 0.1)
+    keys = np.floor(xyz / 0.1).astype(np.int64)
+    _, ref_inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    ref_inverse = ref_inverse.ravel()
+    np.testing.assert_array_equal(inverse, ref_inverse)
+    m = len(counts)
+    np.testing.assert_array_equal(cen, np.stack([np.bincount(ref_inverse, xyz[:, a], m) for a in range(3)], 1)
+                                  / counts[:, None])
+    np.testing.assert_array_equal(mean_i, np.bincount(ref_inverse, inten, m) / counts)
+
+
+def _mls_reference(xyz: np.ndarray, radius: float, voxel: float):
+    """Point by point: Gaussian-weighted plane through the points of the 3x3x3 cells within ``radius``."""
+    cells: dict[tuple, int] = {}
+    for i, key in enumerate(map(tuple, np.floor(xyz / voxel).astype(int))):
+        cells[key] = i
+    out, keep, normals = xyz.copy(), np.zeros(len(xyz), bool), np.zeros_like(xyz)
+    for i, p in enumerate(xyz):
+        key = np.floor(p / voxel).astype(int)
+        nb = [cells[t] for t in ((key[0] + a, key[1] + b, key[2] + c) for a in (-1, 0, 1) for b in (-1, 0, 1)
+                                 for c in (-1, 0, 1)) if t in cells]
+        nb = [j for j in nb if np.sum((xyz[j] - p) ** 2) <= radius**2]
+        if len(nb) < 3:
+            continue
+        d = xyz[nb] - p
+        w = np.exp(-np.sum(d**2, axis=1) / radius**2)
+        m = w @ d / w.sum()
+        cov = (w[:, None] * d).T @ d / w.sum() - np.outer(m, m)
+        n = np.linalg.eigh(cov)[1][:, 0]
+        keep[i], normals[i] = True, n
+        out[i] = p - ((p - (p + m)) @ n) * n
+    return out, keep, normals
+
+
+def test_mls_matches_pointwise_reference():
+    rng = np.random.default_rng(4)
+    g = rng.uniform(0.0, 0.6, (1500, 2))
+    surface = np.column_stack([g, 1.5 + 0.2 * np.sin(4 * g[:, 0]) + rng.normal(0, 0.01, len(g))])
+    surface = np.vstack([surface, rng.uniform(-0.5, 1.0, (20, 3))])      # a few isolated points
+    xyz, _, _ = voxel_filter(surface, np.zeros(len(surface)), 0.05)
+    out, keep, normals = mls_smooth(xyz, 0.1, 0.05)
+    ref_out, ref_keep, ref_normals = _mls_reference(xyz, 0.1, 0.05)
+    np.testing.assert_array_equal(keep, ref_keep)
+    assert 0 < keep.sum() < len(keep)
+    np.testing.assert_allclose(out, ref_out, atol=1e-9)
+    np.testing.assert_allclose(np.abs(np.sum(normals * ref_normals, axis=1))[keep], 1.0, atol=1e-9)
+
+
+def test_mask_on_the_samples_box_equals_whole_image():
+    rng = np.random.default_rng(5)
+    h, w = 120, 160
+    for trial in range(200):
+        n = int(rng.integers(1, 60))
+        centre = rng.integers(0, [h, w])                      # blobs anywhere, borders included
+        pix = np.clip(centre + rng.normal(0, rng.uniform(1, 40), (n, 2)).astype(int), 0, [h - 1, w - 1])
+        radius = int(rng.integers(1, 8))
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+        ref = np.zeros((h, w), np.uint8)
+        ref[pix[:, 0], pix[:, 1]] = 1
+        ref = cv2.morphologyEx(cv2.dilate(ref, kernel), cv2.MORPH_CLOSE, kernel)
+        np.testing.assert_array_equal(samples_to_mask((h, w), pix, radius), ref, err_msg=f"trial {trial}")
+
+
+def test_correlation_scores_match_a_per_pose_loop():
+    rng = np.random.default_rng(6)
+    ref_xyz, ref_i = rng.uniform(0, 1, (2000, 3)), rng.random(2000)
+    ref = Cloud(ref_xyz, ref_i, np.zeros((0, 2), int), np.zeros(0, int), (1, 1), _tree=cKDTree(ref_xyz))
+    src, src_i = rng.uniform(0, 1, (500, 3)), rng.random(500)
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    poses[:, :3, 3] = rng.normal(0, 0.05, (5, 3))
+    cfg = CprConfig(score_points=300, score_candidates=4)
+    pick = (np.arange(300) * 500) // 300
+    expected = []
+    for T in poses:                                           # the straightforward pose-by-pose version
+        moved = np.einsum("ab,nb->na", T[:3, :3], src[pick]) + T[:3, 3]
+        dist, idx = cKDTree(ref_xyz).query(moved, k=4)
+        expected.append(np.min(dist + np.abs(src_i[pick][:, None] - ref_i[idx]), axis=1).mean())
+    np.testing.assert_allclose(correlation_scores(src, src_i, poses, ref, cfg), expected, rtol=1e-12)
