@@ -46,11 +46,23 @@ def layered_scene(rng, n_person=30, n_bg=12, n_obj=6, n_out=8):
 def test_inliers_are_the_person_depth_layer():
     rng = np.random.default_rng(1)
     uv, d, labels = layered_scene(rng)
-    method = DepthSdfMethod(DepthSdfConfig(), ClassGroups())
+    method = DepthSdfMethod(DepthSdfConfig(combine="best"), ClassGroups())
     for index in range(10):                      # every frame seed finds the same layer
         out = method.process(make_ctx(make_frame(uv, d, index), [BOX]))
         np.testing.assert_array_equal(out.prob, labels)
         assert out.info["fitted"] == 1 and out.info["dynamic"] == 30
+
+
+def test_paper_union_flags_every_layer_an_iteration_fits():
+    # Algorithm 1 adds each iteration's inliers to S1: with 20 draws, pairs from the wall (12 of 48
+    # features) and the object in front (6) fit their own layers, so those are flagged too; features
+    # outside the box never are.
+    rng = np.random.default_rng(1)
+    uv, d, labels = layered_scene(rng)
+    out = DepthSdfMethod(DepthSdfConfig(combine="union"), ClassGroups()).process(make_ctx(make_frame(uv, d), [BOX]))
+    assert (out.prob[:30] == 1).all()                          # the person layer always
+    assert out.prob[30:48].sum() > 0                            # plus the other layers drawn
+    assert (out.prob[48:] == 0).all()
 
 
 def test_deterministic_for_a_seed_and_frame():
@@ -72,12 +84,15 @@ def test_deterministic_for_a_seed_and_frame():
 def test_vectorised_fit_matches_a_loop_over_the_paper_steps():
     rng = np.random.default_rng(3)
     d = np.r_[rng.uniform(1.9, 2.1, 25), rng.uniform(3.0, 4.0, 15)]
-    inl, model = fit_depth_layer(d, np.random.default_rng(11), 20, 0.02, 0.01)
+    inl, (model,) = fit_depth_layer(d, np.random.default_rng(11), 20, 0.02, 0.01, combine="best")
+    union, models = fit_depth_layer(d, np.random.default_rng(11), 20, 0.02, 0.01, combine="union")
     # Same draws, one model at a time.
     r = np.random.default_rng(11)
     i = r.integers(0, len(d), 20)
     j = (i + 1 + r.integers(0, len(d) - 1, 20)) % len(d)
     best_count, best = -1, None
+    s1 = np.zeros(len(d), bool)             # Algorithm 1's S1: the inliers of every iteration
+    n_models = 0
     for k in range(20):
         pair = d[[i[k], j[k]]]
         mu, sigma = pair.mean(), max(pair.std(), 0.01)
@@ -85,10 +100,14 @@ def test_vectorised_fit_matches_a_loop_over_the_paper_steps():
         n0 = sum(v < 0.02 for v in nll)
         th = 0.02 * (1.0 + n0 / len(d))
         flags = np.array([v < th for v in nll])
+        s1 |= flags
+        n_models += bool(flags.any())
         if flags.sum() > best_count:
             best_count, best = flags.sum(), flags
     np.testing.assert_array_equal(inl, best)
     assert model["inliers"] == best_count
+    np.testing.assert_array_equal(union, s1)
+    assert len(models) == n_models and union.sum() >= inl.sum()
 
 
 def test_broad_models_have_no_inliers():
@@ -142,7 +161,8 @@ def test_mask_is_the_person_depth_band_inside_the_box():
     pick = rng.choice(len(rows), 30, replace=False)
     uv = np.column_stack([cols[pick], rows[pick]]).astype(float)
     d = depth[rows[pick], cols[pick]].astype(float) + rng.uniform(-0.02, 0.02, 30)
-    out = DepthSdfMethod(DepthSdfConfig(), ClassGroups()).process(make_ctx(make_frame(uv, d), [BOX], depth))
+    out = DepthSdfMethod(DepthSdfConfig(combine="best"), ClassGroups()).process(
+        make_ctx(make_frame(uv, d), [BOX], depth))
     mask = out.mask > 0
     assert mask[person & (depth == 2.0)].all()
     assert not mask[depth == 1.0].any()

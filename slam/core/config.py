@@ -316,6 +316,9 @@ def _validate_dynamic(dyn: DynamicConfig, source: str) -> None:
     if dyn.detector.model not in DETECTOR_MODELS:
         raise ConfigError(f"{source}: 'dynamic.detector.model' must be one of {', '.join(DETECTOR_MODELS)}, "
                           f"got '{dyn.detector.model}'")
+    if dyn.depth_sdf.combine not in ("union", "best"):
+        raise ConfigError(f"{source}: 'dynamic.depth_sdf.combine' must be one of union, best, "
+                          f"got '{dyn.depth_sdf.combine}'")
     for name in METHOD_NAMES:
         if getattr(dyn, name).weight < 0:
             raise ConfigError(f"{source}: 'dynamic.{name}.weight' must be >= 0")

@@ -123,6 +123,9 @@ class DepthSdfConfig:
     iterations: int = 20
     base_threshold: float = 0.02
     min_sigma: float = 0.01          # floor of the two-point depth std (m): equal depths give sigma = 0
+    # "union": the inliers of every iteration are dynamic (the paper's Algorithm 1, S1 collects them);
+    # "best": only those of the model with the most inliers (see frontend/dynamic/depth_sdf.py).
+    combine: str = "union"
     seed: int = 0
 
 
