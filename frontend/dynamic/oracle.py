@@ -25,14 +25,20 @@ class OracleDetector:
                 for x0, y0, x1, y1, cls in self._boxes.get(round(float(timestamp), 6), [])]
 
 
-def synthetic_oracle(sequence, kinds: dict[str, int] | None = None, margin_px: int = 0) -> OracleDetector:
+def synthetic_oracle(sequence, kinds: dict[str, int] | None = None, margin_px: int = 0,
+                     skip_frames: Iterable[int] = ()) -> OracleDetector:
     """Ground-truth boxes of a SyntheticSequence's movers ('person' → COCO person, 'chair' → chair),
     widened by ``margin_px`` as a detector's boxes are (pixel-tight boxes are not what the methods
-    were designed for); kinds not in ``kinds`` (e.g. flying boxes) are left out."""
+    were designed for); kinds not in ``kinds`` (e.g. flying boxes) are left out, and frames in
+    ``skip_frames`` have no boxes (a detector's misses)."""
     kinds = kinds if kinds is not None else {"person": PERSON, "chair": 56}
     w, h, m = sequence.width, sequence.height, margin_px
     boxes = {}
+    skip = set(skip_frames)
     for i, t in enumerate(sequence.timestamps):
+        if i in skip:
+            boxes[t] = []
+            continue
         boxes[t] = [(max(x0 - m, 0), max(y0 - m, 0), min(x1 + m, w), min(y1 + m, h), kinds[k])
                     for x0, y0, x1, y1, k in sequence.mover_boxes(i) if k in kinds]
     return OracleDetector(boxes)

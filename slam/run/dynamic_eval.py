@@ -59,11 +59,68 @@ def boundary_band(mask: np.ndarray, radius: int) -> np.ndarray:
     return (cv2.dilate(m, kernel) != cv2.erode(m, kernel))
 
 
-def classify_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary_px: int = 3) -> ClassificationScores:
-    system = System(config, detector=synthetic_oracle(sequence), sequence_name=sequence.name)
+def classify_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary_px: int = 3,
+                       detector=None) -> ClassificationScores:
+    """Run ``System`` on ``sequence`` with ``detector`` (default: its ground-truth boxes) and score every
+    method's per-feature decision against the exact dynamic mask."""
+    return evaluate_synthetic(sequence, config, boundary_px, detector).classification
+
+
+@dataclass
+class PixelCounts:
+    """Moving-pixel counts of one method's mask at p >= 0.5 against the exact mask, summed over frames."""
+
+    true_positive: int = 0
+    flagged: int = 0
+    dynamic: int = 0
+
+    def add(self, mask: np.ndarray, truth: np.ndarray) -> None:
+        flagged = mask >= 0.5
+        self.true_positive += int(np.count_nonzero(flagged & truth))
+        self.flagged += int(np.count_nonzero(flagged))
+        self.dynamic += int(np.count_nonzero(truth))
+
+    @property
+    def precision(self) -> float:
+        return self.true_positive / self.flagged if self.flagged else float("nan")
+
+    @property
+    def recall(self) -> float:
+        return self.true_positive / self.dynamic if self.dynamic else float("nan")
+
+
+@dataclass
+class SceneEvaluation:
+    """One run of ``System`` on a generated sequence: per-feature classification, the pixel masks of the
+    keyframes (what ``masks/`` holds) against the exact masks, and the trajectory against ground truth
+    (ATE over tracked frames, per-frame error, frames LOST)."""
+
+    classification: ClassificationScores
+    keyframe_masks: dict[str, PixelCounts]
+    ate_rmse: float
+    max_error: float
+    errors: np.ndarray
+    lost_frames: list[int]
+    keyframes: int
+
+    def mask_table(self) -> str:
+        lines = ["| method | mask precision | mask recall |", "|---|---|---|"]
+        lines += [f"| {name} | {c.precision:.3f} | {c.recall:.3f} |" for name, c in self.keyframe_masks.items()]
+        return "\n".join(lines)
+
+
+def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary_px: int = 3,
+                       detector=None) -> SceneEvaluation:
+    """Run ``System`` on ``sequence`` (a ``SyntheticSequence`` or ``HardScene``) with ``detector``
+    (default: its ground-truth boxes) and measure classification, keyframe masks and trajectory."""
+    from slam.run.evaluation import ate
+
+    detector = synthetic_oracle(sequence) if detector is None else detector
+    system = System(config, detector=detector, sequence_name=sequence.name)
     flags: dict[str, list[np.ndarray]] = {}
     truths: list[np.ndarray] = []
     keeps: list[np.ndarray] = []
+    masks: dict[str, PixelCounts] = {}
     scores = ClassificationScores()
     for frame in sequence:
         out = system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
@@ -75,10 +132,28 @@ def classify_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
         for name, output in rejector.last_outputs.items():
             flags.setdefault(name, []).append(np.nan_to_num(output.prob, nan=0.0) >= 0.5)
         flags.setdefault("fused", []).append(rejector.last_fused >= config.tracking.dynamic_threshold)
+        if out.is_keyframe:
+            _count_masks(masks, rejector.last_outputs, system.last_dynamic_mask, frame.dynamic_mask)
     keep = np.concatenate(keeps)
     truth = np.concatenate(truths)[keep]
     scores.features, scores.dynamic_features = len(truth), int(truth.sum())
     scores.boundary_features = int((~keep).sum())
     for name, per_frame in flags.items():
         scores.precision[name], scores.recall[name] = precision_recall(np.concatenate(per_frame)[keep], truth)
-    return scores
+    stamps, poses, tracked = system.trajectory()
+    gt_t, gt_poses = sequence.groundtruth()
+    result = ate(gt_t, gt_poses, stamps[tracked], poses[tracked])
+    evaluation = SceneEvaluation(scores, masks, result.rmse, result.max, result.errors,
+                                 [int(i) for i in np.flatnonzero(~tracked)], system.num_keyframes)
+    system.close()
+    return evaluation
+
+
+def _count_masks(counts: dict[str, PixelCounts], outputs, fused: np.ndarray | None, truth: np.ndarray) -> None:
+    """Each method's pixel mask (a method without one counts as flagging nothing) and the fused mask
+    (what ``masks/`` stores for a keyframe)."""
+    empty = np.zeros(truth.shape, np.float32)
+    for name, output in outputs.items():
+        mask = output.mask if output.mask is not None and np.shape(output.mask) == truth.shape else empty
+        counts.setdefault(name, PixelCounts()).add(np.asarray(mask, np.float32), truth)
+    counts.setdefault("fused", PixelCounts()).add(empty if fused is None else fused, truth)

@@ -1,0 +1,123 @@
+"""The scripted hard scenes (issue 11): the failure they reproduce is really in them, and SLAM's answer.
+
+Scene checks (fast) assert what each scene promises: a person within 1 m filling > 60 % of the view,
+blurred, missed by the detector where they fill most of it; three people over most of the view; a person
+standing (not in the exact moving mask) then walking; a person cut by the border and missed while less
+than half of them is in view.
+
+SLAM checks (slow) are the issue's bar for generated hard scenes: ATE within 1.5x of the same camera path
+without people, and no tracked frame more than 5 cm off (a frame may be LOST instead). Where dynslam
+does not meet it yet the test is a strict xfail with the measured numbers: the day it passes, the xfail
+must go.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import synthetic_config, synthetic_sequence
+from slam.datasets.synthetic_scenes import HARD_SCENES, MISS_COVERAGE, HardScene, scene_detector
+from slam.run.dynamic_eval import evaluate_synthetic
+
+FRAMES = 150
+MAX_FRAME_ERROR_M = 0.05     # the issue's bar: a tracked frame further off than this should have been LOST
+MAX_ATE_RATIO = 1.5          # the issue's bar against the same path without people
+
+pytestmark = pytest.mark.slow   # building the four scenes alone takes ~20 s
+
+
+@pytest.fixture(scope="module")
+def scenes() -> dict[str, HardScene]:
+    return {name: HardScene(name, n_frames=FRAMES) for name in HARD_SCENES}
+
+
+def _mover_depth(scene: HardScene, index: int) -> np.ndarray:
+    return scene.frame(index).depth[scene.mover_ids(index) >= 0]
+
+
+def test_close_pass_fills_the_view_within_a_metre_blurred_and_missed(scenes):
+    scene = scenes["close_pass"]
+    peak = int(np.argmax(scene.coverage))
+    assert scene.coverage[peak] > 0.6
+    assert np.median(_mover_depth(scene, peak)) < 1.0
+    # The detector misses exactly the frames where the person fills most of the view, and they exist.
+    assert scene.detector_misses == frozenset(np.flatnonzero(scene.coverage > MISS_COVERAGE).tolist())
+    assert len(scene.detector_misses) >= 3
+    detector = scene_detector(scene)
+    for i in scene.detector_misses:
+        assert detector.detect(None, float(scene.timestamps[i])) == []
+    assert detector.detect(None, float(scene.timestamps[peak - 8])) != []
+    # Blurred: the frame is the average over the exposure, smoother than the sharp render of its instant.
+    assert peak in scene.blurred
+    blurred = scene.frame(peak).rgb
+    sharp = scene.render(scene.pose(float(scene.timestamps[peak])), float(scene.timestamps[peak]))[0]
+    person = scene.mover_ids(peak) >= 0
+
+    def gradient_energy(img):
+        gray = img.astype(np.float32).mean(axis=2)
+        return float(np.mean(np.abs(np.diff(gray, axis=1))[person[:, 1:]]))
+
+    assert gradient_energy(blurred) < 0.85 * gradient_energy(sharp)
+
+
+def test_three_close_people_cover_most_of_the_view(scenes):
+    scene = scenes["three_close"]
+    peak = int(np.argmax(scene.coverage))
+    assert scene.coverage[peak] > 0.75
+    visible_together = max(len(scene.mover_boxes(i)) for i in range(peak - 15, peak + 1))
+    assert visible_together == 3
+    assert np.count_nonzero(scene.coverage > 0.6) >= 10
+
+
+def test_stand_walk_person_is_not_moving_while_standing(scenes):
+    scene = scenes["stand_walk"]
+    first = scene.frame(0)
+    assert scene.coverage[0] > 0.1                     # in view ...
+    assert not first.dynamic_mask.any()                # ... but not a moving surface
+    walking = [i for i in range(FRAMES) if scene.dynamic_mask(i).any()]
+    assert walking and walking[0] >= FRAMES // 2 - 1   # walks from mid-sequence on
+
+
+def test_border_person_is_cut_and_missed_while_mostly_out_of_view(scenes):
+    scene = scenes["border"]
+    assert scene.detector_misses
+    for i in sorted(scene.detector_misses)[::5]:
+        boxes = scene.mover_boxes(i)
+        assert boxes and all(x0 == 0 or x1 == scene.width for x0, _, x1, _, _ in boxes)
+    detected = [i for i in range(FRAMES) if scene.mover_boxes(i) and i not in scene.detector_misses]
+    assert detected                                     # and found once enough of them is in view
+
+
+def test_scenes_are_deterministic():
+    a, b = HardScene("close_pass", n_frames=FRAMES), HardScene("close_pass", n_frames=FRAMES)
+    i = int(np.argmax(a.coverage))
+    assert np.array_equal(a.frame(i).rgb, b.frame(i).rgb) and a.detector_misses == b.detector_misses
+
+
+def test_unknown_scene_names_the_choices():
+    with pytest.raises(ValueError, match="close_pass, three_close, stand_walk, border"):
+        HardScene("stampede")
+
+
+@pytest.fixture(scope="module")
+def clean_ate() -> float:
+    seq = synthetic_sequence(FRAMES)
+    return evaluate_synthetic(seq, synthetic_config(seq, preset="dynamic_all")).ate_rmse
+
+
+# Measured at the commit that added them (python tools/hard_scenes.py): ATE / clean, worst tracked frame.
+_NOT_YET = {
+    "close_pass": "ATE 1.57x the clean path's (5.7 vs 3.6 mm); worst frame 23 mm",
+    "three_close": "ATE 4.5x the clean path's (16.3 vs 3.6 mm), worst tracked frame 65 mm, 10 frames LOST",
+}
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=_NOT_YET[n], strict=True))
+                                  if n in _NOT_YET else n for n in HARD_SCENES])
+def test_slam_on_hard_scene_stays_near_the_clean_path(name, scenes, clean_ate):
+    scene = scenes[name]
+    result = evaluate_synthetic(scene, synthetic_config(scene, preset="dynamic_all"),
+                                detector=scene_detector(scene, margin_px=8))
+    assert result.max_error <= MAX_FRAME_ERROR_M, f"a tracked frame is {result.max_error:.3f} m off"
+    assert result.ate_rmse <= MAX_ATE_RATIO * clean_ate, \
+        f"ATE {result.ate_rmse:.4f} m vs {clean_ate:.4f} m without people"
