@@ -18,7 +18,9 @@ from typing import Optional, Sequence
 
 from slam.core.errors import EXIT_INTERRUPTED, EXIT_USAGE   # the CLI's exit codes (light: --help stays instant)
 
-DEMO_MOVERS = ("none", "people", "boxes", "crowd", "drag")   # = slam.datasets.synthetic_movers.MOVER_PRESETS
+# = slam.datasets.synthetic_movers.MOVER_PRESETS, then slam.datasets.synthetic_scenes.HARD_SCENES (not imported:
+# --help stays light; tests/test_cli.py checks both lists)
+DEMO_MOVERS = ("none", "boxes", "people", "crowd", "drag", "close_pass", "three_close", "stand_walk", "border")
 DEMO_ORACLE_MARGIN_PX = 8   # the generated movers' true boxes, widened as a detector's boxes are
 TRAJECTORY_FORMAT_NAMES = ("tum", "kitti", "euroc")   # = slam.core.config.TRAJECTORY_FORMATS (not imported: --help stays light)
 
@@ -130,29 +132,60 @@ def _blackout(dataset, spec: str):
 
 
 def cmd_demo(args) -> int:
-    from frontend.dynamic.oracle import synthetic_oracle
-    from slam.datasets import SyntheticSequence
     from slam.core.atomic_io import ensure_output_dir
-    from slam.run.pipeline import Pipeline
 
-    sequence = SyntheticSequence(n_frames=args.frames, seed=args.seed, movers=args.movers)
+    output = ensure_output_dir(args.output or _default_output("synthetic"))
+    sequence = _demo_sequence(args)
     fx, fy, cx, cy = sequence.intrinsics
     overrides = {"camera.name": "synthetic", "camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
                  "camera.width": sequence.width, "camera.height": sequence.height,
-                 "camera.distortion": [0.0] * 5, "seed": args.seed}
-    config = resolve_run_config(None, args.config, {**overrides, **_parse_overrides(args.set)})
-    output = ensure_output_dir(args.output or _default_output("synthetic"))
-    movers = "" if args.movers == "none" else f" with {args.movers} moving"
+                 "camera.distortion": [0.0] * 5, "seed": args.seed, **_parse_overrides(args.set)}
+    config = resolve_run_config(None, args.config, overrides)
+    movers = "" if args.movers == "none" else f" with {args.movers.replace('_', ' ')}"
     print(f"dynslam demo: {args.frames} frames of a generated textured room{movers} (seed {args.seed})",
           file=sys.stderr)
+    dynamic_on = bool(config.dynamic.methods) or config.dynamic.box_prior > 0
+    summary, interrupted = _demo_run(sequence, config, output, args)
+    if interrupted or not dynamic_on or args.no_compare:
+        return EXIT_INTERRUPTED if interrupted else 0
+    # The same room and path with dynamic handling off: what the front end buys, side by side.
+    off = resolve_run_config(None, args.config, {**overrides, "dynamic.methods": [], "dynamic.box_prior": 0.0})
+    print("dynslam demo: the same run with dynamic handling off, for comparison", file=sys.stderr)
+    off_summary, interrupted = _demo_run(_demo_sequence(args), off, ensure_output_dir(output / "without_dynamic"),
+                                         args)
+    if summary.ate_rmse_m is not None and off_summary.ate_rmse_m is not None:
+        print(f"ATE with dynamic handling {summary.ate_rmse_m * 1000:.1f} mm ({output}), "
+              f"without {off_summary.ate_rmse_m * 1000:.1f} mm ({output / 'without_dynamic'})")
+    return EXIT_INTERRUPTED if interrupted else 0
+
+
+def _demo_sequence(args):
+    from slam.datasets import SyntheticSequence
+    from slam.datasets.synthetic_scenes import HARD_SCENES, HardScene
+
+    if args.movers in HARD_SCENES:
+        return HardScene(args.movers, n_frames=args.frames, seed=args.seed)
+    return SyntheticSequence(n_frames=args.frames, seed=args.seed, movers=args.movers)
+
+
+def _demo_run(sequence, config, output: Path, args):
+    """One run of the demo; (summary, interrupted)."""
+    from frontend.dynamic.oracle import synthetic_oracle
+    from slam.datasets.synthetic_scenes import HardScene, scene_detector
+    from slam.run.pipeline import Pipeline
+
     progress = _progress_printer(args.frames, args.quiet)
-    # YOLOX does not detect the generated people: their true boxes (widened as a detector's are) stand in.
-    detector = None if not sequence.movers else synthetic_oracle(sequence, margin_px=DEMO_ORACLE_MARGIN_PX)
+    # YOLOX does not detect the generated people: their true boxes (widened as a detector's are) stand
+    # in, without the frames a scripted hard scene's detector misses.
+    if isinstance(sequence, HardScene):
+        detector = scene_detector(sequence, margin_px=DEMO_ORACLE_MARGIN_PX)
+    else:
+        detector = synthetic_oracle(sequence, margin_px=DEMO_ORACLE_MARGIN_PX)
     pipeline = Pipeline(sequence, config, output, None, progress, detector=detector)
-    pipeline.run()
+    summary = pipeline.run()
     progress.finish()
     print(pipeline.format_summary())
-    return 0
+    return summary, summary.interrupted
 
 
 def cmd_eval(args) -> int:
@@ -268,9 +301,12 @@ def _slam_parsers(sub) -> None:
     demo = _command(sub, "demo", help="generate a synthetic RGB-D room and run SLAM on it")
     demo.add_argument("--frames", type=int, default=120, help="length of the generated sequence (default 120)")
     demo.add_argument("--seed", type=int, default=0, help="seed of the room, the path and the movers (default 0)")
-    demo.add_argument("--movers", choices=DEMO_MOVERS, default="none",
-                      help="moving objects in the room (their true boxes stand in for the detector); "
-                           "add -c dynamic_all to handle them")
+    demo.add_argument("--movers", choices=DEMO_MOVERS, default="people",
+                      help="moving objects in the room (their true boxes stand in for the detector): random "
+                           "walkers (people, crowd, ...) or a scripted hard scene (close_pass, three_close, "
+                           "stand_walk, border); default people")
+    demo.add_argument("--no-compare", action="store_true",
+                      help="skip the second run with dynamic handling off (written to OUTPUT/without_dynamic)")
     demo.add_argument("--output", "-o", help="results folder (default results/synthetic_<time>)")
     _config_options(demo)
     demo.set_defaults(func=cmd_demo)

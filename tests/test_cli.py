@@ -208,7 +208,7 @@ def demo_run(tmp_path_factory) -> tuple[int, Path]:
     out_dir = tmp_path_factory.mktemp("demo") / "results"
     saved_format = warnings.formatwarning
     try:
-        code = main(["demo", "--frames", "40", "-o", str(out_dir), "-q"])
+        code = main(["demo", "--movers", "none", "--frames", "40", "-o", str(out_dir), "-q"])
     finally:
         warnings.formatwarning = saved_format
     return code, out_dir
@@ -314,7 +314,7 @@ def test_dynamic_run_writes_per_frame_flag_counts(tmp_path):
     from slam.cli import main
 
     out = tmp_path / "dyn"
-    assert main(["demo", "--frames", "12", "-o", str(out), "-q", "--set", "dynamic.methods=[cpr]",
+    assert main(["demo", "--movers", "none", "--frames", "12", "-o", str(out), "-q", "--set", "dynamic.methods=[cpr]",
                  "--set", "dynamic.fusion=single"]) == 0
     lines = (out / "dynamic.csv").read_text().strip().splitlines()
     assert lines[0] == "timestamp,cpr,fused"
@@ -327,8 +327,9 @@ def test_dynamic_run_writes_per_frame_flag_counts(tmp_path):
 def test_missing_detector_model_is_a_clear_error(tmp_path, capsys):
     from slam.cli import main
 
+    folder = write_tum_layout(SyntheticSequence(n_frames=3), tmp_path / "seq")
     missing = tmp_path / "nowhere" / "yolox.onnx"
-    code = main(["demo", "--frames", "3", "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_box_depth",
+    code = main(["run", str(folder), "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_box_depth",
                  "--set", f"dynamic.detector.path={missing}"])
     assert code == 2
     err = capsys.readouterr().err
@@ -339,7 +340,7 @@ def test_detector_free_method_needs_no_model(tmp_path, monkeypatch):
     from slam.cli import main
 
     monkeypatch.setenv("DYNSLAM_DETECTOR_MODEL", str(tmp_path / "absent.onnx"))
-    assert main(["demo", "--frames", "4", "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_cpr"]) == 0
+    assert main(["demo", "--movers", "none", "--frames", "4", "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_cpr"]) == 0
 
 
 def test_blackout_option_marks_blank_frames_lost(tmp_path):
@@ -394,7 +395,7 @@ def test_run_writes_the_keyframe_graph(tmp_path):
     from slam.cli import main
 
     out = tmp_path / "out"
-    assert main(["demo", "--frames", "15", "-o", str(out), "-q"]) == 0
+    assert main(["demo", "--movers", "none", "--frames", "15", "-o", str(out), "-q"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     graph, values = gtsam.readG2o(str(out / "graph.g2o"), True)
     assert values.size() == summary["keyframes"] and graph.size() >= summary["keyframes"] - 1
@@ -439,3 +440,11 @@ def test_every_option_of_every_command_has_help():
     missing = [f"{name} {'/'.join(a.option_strings) or a.dest}" for name, sub in commands.items()
                for a in sub._actions if not a.help and not isinstance(a, argparse._HelpAction)]
     assert not missing, missing
+
+
+def test_demo_movers_list_every_generator_choice():
+    from slam.cli import DEMO_MOVERS
+    from slam.datasets.synthetic_movers import MOVER_PRESETS
+    from slam.datasets.synthetic_scenes import HARD_SCENES
+
+    assert DEMO_MOVERS == tuple(MOVER_PRESETS) + HARD_SCENES
