@@ -107,8 +107,8 @@ def clean_ate() -> float:
 
 # Measured at the commit that added them (python tools/hard_scenes.py): ATE / clean, worst tracked frame.
 _NOT_YET = {
-    "close_pass": "ATE 1.57x the clean path's (5.7 vs 3.6 mm); worst frame 23 mm",
-    "three_close": "ATE 4.5x the clean path's (16.3 vs 3.6 mm), worst tracked frame 65 mm, 10 frames LOST",
+    "close_pass": "ATE 1.70x the clean path's (6.2 vs 3.6 mm); worst frame 26 mm",
+    "three_close": "ATE 3.4x the clean path's (12.3 vs 3.6 mm), worst tracked frame 46 mm, 10 frames LOST",
 }
 
 
