@@ -70,10 +70,10 @@ class RunArtifacts:
         """Pipeline hook, once per processed frame: keyframes leave their mask (and images)."""
         if not out.is_keyframe:
             return
-        if hasattr(system.dynamic_filter, "last_mask"):   # dynamic handling on (the null filter has none)
-            mask = system.last_dynamic_mask
-            mask = np.zeros(frame.depth.shape, np.float32) if mask is None else mask
-            write_png_atomic(self.output_dir / MASK_DIR / f"{frame.index:06d}.png", mask_to_png(mask))
+        # Every keyframe has a mask (all zeros with dynamic handling off), so export never guesses.
+        mask = system.last_dynamic_mask
+        mask = np.zeros(frame.depth.shape, np.float32) if mask is None else mask
+        write_png_atomic(self.output_dir / MASK_DIR / f"{frame.index:06d}.png", mask_to_png(mask))
         if self.copy_keyframes:
             self._write_keyframe_images(frame)
 
