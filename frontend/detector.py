@@ -22,7 +22,6 @@ The box geometry (letterbox, box mapping, IoU, NMS) is in ``frontend.detector_bo
 from __future__ import annotations
 
 import hashlib
-import os
 import re
 import warnings
 from pathlib import Path
@@ -34,50 +33,18 @@ import numpy as np
 from frontend.detector_boxes import boxes_from_input, letterbox_params, nms_per_class
 from frontend.detector_boxes import box_iou, boxes_to_input, nms_numpy  # noqa: F401  (re-exported)
 from frontend.dynamic.base import Detection, Detector
+from frontend.model_lookup import (ENV_MODEL, MODEL_FILES, DetectorError,  # noqa: F401  (re-exported)
+                                   ModelNotFoundError, default_model_dir, resolve_model_path)
+from frontend.model_lookup import howto as _howto
 from slam.core.atomic_io import write_npz_atomic
 from slam.core.dynamic_config import ClassGroups, DetectorConfig
-from slam.core.errors import DynslamError
 
-ENV_MODEL = "DYNSLAM_DETECTOR_MODEL"
-MODEL_FILES = {"yolox_nano": "yolox_nano_416.onnx", "nanodet": "nanodet_m_320.onnx"}
 _INPUT_SIZE = {"yolox_nano": 416, "nanodet": 320}
 _STRIDES = (8, 16, 32)
 _NANODET_MEAN = np.array([103.53, 116.28, 123.675], dtype=np.float32)
 _NANODET_STD = np.array([57.375, 57.12, 58.395], dtype=np.float32)
 _NANODET_BINS = 8
 _YOLOX_PAD = 114.0
-
-
-class DetectorError(DynslamError, RuntimeError):
-    """The detector model cannot be loaded or run (missing/corrupt file, wrong model kind)."""
-
-
-# --------------------------------------------------------------------------------------------
-# Model path resolution
-
-
-def default_model_dir() -> Path:
-    """``<checkout>/../shared/models``."""
-    return Path(__file__).resolve().parents[1].parent / "shared" / "models"
-
-
-def resolve_model_path(cfg: DetectorConfig) -> Path:
-    """``cfg.path`` if set, else ``$DYNSLAM_DETECTOR_MODEL``, else ``../shared/models/<model file>``
-    beside the checkout. The file is not checked here (``OnnxDetector`` does that)."""
-    if cfg.model not in MODEL_FILES:
-        raise DetectorError(f"unknown detector model '{cfg.model}' (expected one of {', '.join(MODEL_FILES)})")
-    if cfg.path:
-        return Path(cfg.path).expanduser()
-    env = os.environ.get(ENV_MODEL, "").strip()
-    if env:
-        return Path(env).expanduser()
-    return default_model_dir() / MODEL_FILES[cfg.model]
-
-
-def _howto(kind: str) -> str:
-    return (f"set 'dynamic.detector.path' in the config or the environment variable {ENV_MODEL} to the "
-            f"{MODEL_FILES.get(kind, 'ONNX model')} file (see shared/models/README.md), or disable the "
-            f"methods that need a detector")
 
 
 # --------------------------------------------------------------------------------------------

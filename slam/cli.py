@@ -22,6 +22,7 @@ from slam.core.errors import EXIT_INTERRUPTED, EXIT_USAGE   # the CLI's exit cod
 # --help stays light; tests/test_cli.py checks both lists)
 DEMO_MOVERS = ("none", "boxes", "people", "crowd", "drag", "close_pass", "three_close", "stand_walk", "border")
 DEMO_ORACLE_MARGIN_PX = 8   # the generated movers' true boxes, widened as a detector's boxes are
+MODEL_NAMES = ("yolox-nano", "nanodet-m")   # = slam.core.model_files.MODELS (not imported: --help stays light)
 TRAJECTORY_FORMAT_NAMES = ("tum", "kitti", "euroc")   # = slam.core.config.TRAJECTORY_FORMATS (not imported: --help stays light)
 
 
@@ -248,6 +249,17 @@ def cmd_download(args) -> int:
     return 0
 
 
+def cmd_download_model(args) -> int:
+    """Fetch and verify a detector model; prints its path."""
+    from slam.run.model_download import download_model
+
+    result = download_model(args.name, args.dir, base_url=args.base_url, sha256=args.sha256)
+    print(result.path)
+    state = "downloaded and verified" if result.downloaded else "already present and verified"
+    print(f"dynslam download: {result.path.name} {state} (sha256 {result.sha256})", file=sys.stderr)
+    return 0
+
+
 def cmd_export(args) -> int:
     """Sparse (landmarks) and dense (TSDF mesh + cloud) maps of a finished run, without re-running SLAM."""
     from slam.core.config import ConfigError
@@ -359,15 +371,33 @@ def _tool_parsers(sub) -> None:
     voc.add_argument("--seed", type=int, default=0, help="seed of the k-majority clustering")
     voc.set_defaults(func=cmd_vocabulary)
 
-    dl = _command(sub, "download", help="download and unpack an official TUM RGB-D or Bonn sequence")
-    dl.add_argument("kind", help="tum or bonn")
-    dl.add_argument("sequence", help="e.g. freiburg1_xyz (tum) or crowd (bonn); full folder names work too")
-    dl.add_argument("--output", "-o", default=".", help="folder to unpack into (default: current folder)")
-    dl.add_argument("--base-url", help="download server root instead of the official one "
-                                       "(also $DYNSLAM_DOWNLOAD_BASE_URL)")
-    dl.add_argument("--checksum", metavar="ALGO:HEX", help="expected md5:HEX or sha256:HEX of the archive")
-    dl.add_argument("--keep-archive", action="store_true", help="keep the archive after unpacking")
-    dl.set_defaults(func=cmd_download)
+    dl = _command(sub, "download", help="download a TUM RGB-D or Bonn sequence, or a detector model",
+                  description="dynslam download tum|bonn SEQUENCE: fetch, verify and unpack a sequence; "
+                              "dynslam download model [NAME]: fetch a detector model into the cache.")
+    kinds = dl.add_subparsers(dest="kind", required=True, metavar="{tum,bonn,model}", help="what to download")
+    for kind, label, example in (("tum", "TUM RGB-D", "freiburg1_xyz"), ("bonn", "Bonn RGB-D Dynamic", "crowd")):
+        seq = _command(kinds, kind, help=f"an official {label} sequence, e.g. {example}")
+        seq.add_argument("sequence", help=f"e.g. {example}; full folder names work too")
+        seq.add_argument("--output", "-o", default=".", help="folder to unpack into (default: current folder)")
+        seq.add_argument("--base-url", help="download server root instead of the official one "
+                                            "(also $DYNSLAM_DOWNLOAD_BASE_URL)")
+        seq.add_argument("--checksum", metavar="ALGO:HEX", help="expected md5:HEX or sha256:HEX of the archive")
+        seq.add_argument("--keep-archive", action="store_true", help="keep the archive after unpacking")
+        seq.set_defaults(func=cmd_download)
+    model = _command(kinds, "model", help="a detector model (ONNX), verified, into the model cache",
+                     description="Fetches the detector model, checks its pinned size and sha256 and puts it "
+                                 "where runs look for it: $DYNSLAM_CACHE_DIR/models, else the user cache "
+                                 "(Linux: $XDG_CACHE_HOME/dynslam/models or ~/.cache/dynslam/models). "
+                                 "An interrupted download resumes.")
+    model.add_argument("name", nargs="?", default="yolox-nano", choices=MODEL_NAMES,
+                       help="yolox-nano (default, dynamic.detector.model: yolox_nano) or nanodet-m (nanodet)")
+    model.add_argument("--dir", metavar="DIR", help="put the model in DIR instead of the cache (then point "
+                                                    "dynamic.detector.path or $DYNSLAM_DETECTOR_MODEL at it)")
+    model.add_argument("--base-url", metavar="URL", help="replace the scheme and host of the model's URL "
+                                                         "(a mirror keeping the same paths)")
+    model.add_argument("--sha256", metavar="HEX", help="expert: accept this digest instead of the pinned one "
+                                                       "(a mirror serving another build of the model)")
+    model.set_defaults(func=cmd_download_model)
 
     cfg = _command(sub, "config", help="print the default (or resolved) configuration as YAML")
     _config_options(cfg)

@@ -10,10 +10,12 @@ naming what is missing, so a green CI always means the real-data gates ran.
 """
 from __future__ import annotations
 
+import http.server
 import json
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -304,3 +306,61 @@ def write_bag(path: Path, seq: SyntheticSequence, ros_version: int = 1, depth_en
     return path
 
 
+# ----------------------------------------------------------------------------------- local HTTP server
+class RangeHandler(http.server.BaseHTTPRequestHandler):
+    """Serves ``server.files`` (URL path -> bytes) with Range support; records every Range header.
+
+    ``server.ignore_range`` answers 200 with the whole file anyway; ``server.cut_after`` announces the
+    full length but closes the connection after that many body bytes; ``server.fail_status`` answers
+    every request with that HTTP error.
+    """
+
+    def do_GET(self):  # noqa: N802 (http.server's naming)
+        server = self.server
+        server.ranges.append(self.headers.get("Range"))
+        if server.fail_status:
+            self.send_error(server.fail_status)
+            return
+        body = server.files.get(self.path)
+        if body is None:
+            self.send_error(404, "Not Found")
+            return
+        start = 0
+        wanted = self.headers.get("Range")
+        if wanted and not server.ignore_range:
+            start = int(wanted.split("=")[1].split("-")[0])
+            if start >= len(body):
+                self.send_response(416)
+                self.send_header("Content-Range", f"bytes */{len(body)}")
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+                return
+            self.send_response(206)
+            self.send_header("Content-Range", f"bytes {start}-{len(body) - 1}/{len(body)}")
+        else:
+            self.send_response(200)
+        self.send_header("Content-Length", str(len(body) - start))
+        self.end_headers()
+        payload = body[start:]
+        if server.cut_after is not None:
+            payload = payload[:server.cut_after]
+        self.wfile.write(payload)
+        if server.cut_after is not None:
+            self.wfile.flush()
+            self.close_connection = True
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture
+def server():
+    """A local HTTP server on 127.0.0.1 (a thread) serving ``server.files``; ``server.base_url``."""
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), RangeHandler)
+    httpd.files, httpd.ranges, httpd.ignore_range, httpd.cut_after, httpd.fail_status = {}, [], False, None, 0
+    thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    thread.start()
+    httpd.base_url = f"http://127.0.0.1:{httpd.server_address[1]}"
+    yield httpd
+    httpd.shutdown()
+    httpd.server_close()

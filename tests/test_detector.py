@@ -204,8 +204,11 @@ def test_corrupt_model_error_names_path(tmp_path):
     assert isinstance(err.value, RuntimeError)
 
 
+@pytest.mark.real
 def test_resolve_model_path(monkeypatch, tmp_path):
     monkeypatch.delenv("DYNSLAM_DETECTOR_MODEL", raising=False)
+    monkeypatch.setenv("DYNSLAM_CACHE_DIR", str(tmp_path / "empty_cache"))   # the development copies count
+    model_file("yolox"), model_file("nanodet")   # (the full lookup order: tests/test_model_lookup.py)
     repo = Path(det_mod.__file__).resolve().parents[1]
     assert resolve_model_path(DetectorConfig()) == repo.parent / "shared" / "models" / "yolox_nano_416.onnx"
     assert resolve_model_path(DetectorConfig(model="nanodet")).name == "nanodet_m_320.onnx"
@@ -283,7 +286,7 @@ def test_cached_detector_writes_atomically(tmp_path, monkeypatch):
         assert not Path(dst).exists() and Path(src).stat().st_size > 0
         real_replace(src, dst)
 
-    monkeypatch.setattr(det_mod.os, "replace", spy)
+    monkeypatch.setattr(os, "replace", spy)   # the os module the cache writer (atomic_io) uses
     cached.save()
     assert len(replaced) == 1 and replaced[0][1] == path and replaced[0][0].parent == path.parent
     good = path.read_bytes()

@@ -1,12 +1,12 @@
-"""``dynslam download``: fetch, resume, verify and unpack archives from a local HTTP server (no network)."""
+"""``dynslam download``: fetch, resume, verify and unpack archives from a local HTTP server (no network).
+
+The server is the ``server`` fixture of conftest.py (Range support, records each Range header)."""
 from __future__ import annotations
 
 import hashlib
-import http.server
 import io
 import socket
 import tarfile
-import threading
 import warnings
 import zipfile
 from pathlib import Path
@@ -19,60 +19,6 @@ from slam.run.download import DownloadError, archive_spec, download_sequence, un
 
 TUM_FOLDER = "rgbd_dataset_freiburg1_tiny"
 BONN_FOLDER = "rgbd_bonn_tiny"
-
-
-class RangeHandler(http.server.BaseHTTPRequestHandler):
-    """Serves ``server.files`` (URL path -> bytes) with Range support; records every Range header.
-
-    ``server.ignore_range`` answers 200 with the whole file anyway; ``server.cut_after`` announces the
-    full length but closes the connection after that many body bytes.
-    """
-
-    def do_GET(self):  # noqa: N802 (http.server's naming)
-        server = self.server
-        server.ranges.append(self.headers.get("Range"))
-        body = server.files.get(self.path)
-        if body is None:
-            self.send_error(404, "Not Found")
-            return
-        start = 0
-        wanted = self.headers.get("Range")
-        if wanted and not server.ignore_range:
-            start = int(wanted.split("=")[1].split("-")[0])
-            if start >= len(body):
-                self.send_response(416)
-                self.send_header("Content-Range", f"bytes */{len(body)}")
-                self.send_header("Content-Length", "0")
-                self.end_headers()
-                return
-            self.send_response(206)
-            self.send_header("Content-Range", f"bytes {start}-{len(body) - 1}/{len(body)}")
-        else:
-            self.send_response(200)
-        self.send_header("Content-Length", str(len(body) - start))
-        self.end_headers()
-        payload = body[start:]
-        if server.cut_after is not None:
-            payload = payload[:server.cut_after]
-        self.wfile.write(payload)
-        if server.cut_after is not None:
-            self.wfile.flush()
-            self.close_connection = True
-
-    def log_message(self, *args):
-        pass
-
-
-@pytest.fixture
-def server():
-    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), RangeHandler)
-    httpd.files, httpd.ranges, httpd.ignore_range, httpd.cut_after = {}, [], False, None
-    thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-    thread.start()
-    httpd.base_url = f"http://127.0.0.1:{httpd.server_address[1]}"
-    yield httpd
-    httpd.shutdown()
-    httpd.server_close()
 
 
 @pytest.fixture(scope="module")

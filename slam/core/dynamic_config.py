@@ -15,7 +15,8 @@ DETECTOR_MODELS = ("yolox_nano", "nanodet")
 @dataclass
 class DetectorConfig:
     model: str = "yolox_nano"
-    # Empty: $DYNSLAM_DETECTOR_MODEL, else ../shared/models/<model file> beside the checkout.
+    # Empty: $DYNSLAM_DETECTOR_MODEL, else the model cache (dynslam download model), else
+    # ../shared/models/<model file> beside the checkout (frontend/model_lookup.py).
     path: str = ""
     score_threshold: float = 0.3
     nms_iou: float = 0.45

@@ -122,7 +122,7 @@ def download_sequence(kind: str, sequence: str, dest: PathLike = ".", base_url: 
     return target
 
 
-def fetch(url: str, part: Path, progress: Progress) -> int:
+def fetch(url: str, part: Path, progress: Progress, missing_hint: str = "no such sequence on the server?") -> int:
     """Download ``url`` into ``part``, continuing an existing part file; returns the final size.
 
     Raises DownloadError naming the URL for network failures, HTTP errors and a size that differs
@@ -136,10 +136,10 @@ def fetch(url: str, part: Path, progress: Progress) -> int:
         response = urllib.request.urlopen(request, timeout=TIMEOUT_S)
     except urllib.error.HTTPError as exc:
         if exc.code == 416 and have:
-            return _range_not_satisfiable(url, part, have, exc, progress)
+            return _range_not_satisfiable(url, part, have, exc, progress, missing_hint)
         error = DownloadError if 400 <= exc.code < 500 else NetworkError   # 4xx: the request; 5xx: the server
         raise error(f"{url}: HTTP {exc.code} {exc.reason}"
-                    + (" (no such sequence on the server?)" if exc.code == 404 else "")) from None
+                    + (f" ({missing_hint})" if exc.code == 404 else "")) from None
     except (urllib.error.URLError, OSError, http.client.HTTPException) as exc:
         reason = getattr(exc, "reason", exc)
         raise NetworkError(f"cannot reach {url}: {reason}") from None
@@ -192,14 +192,14 @@ def _stream(response, url: str, part: Path, start: int, total: Optional[int], pr
 
 
 def _range_not_satisfiable(url: str, part: Path, have: int, exc: urllib.error.HTTPError,
-                           progress: Progress) -> int:
+                           progress: Progress, missing_hint: str) -> int:
     """HTTP 416 on resume: the part is already complete (size matches) or stale (start over)."""
     match = re.fullmatch(r"bytes \*/(\d+)", (exc.headers.get("Content-Range") or "").strip())
     if match and int(match.group(1)) == have:
         progress(have, have)
         return have
     part.unlink()
-    return fetch(url, part, progress)
+    return fetch(url, part, progress, missing_hint)
 
 
 def verify_checksum(path: Path, checksum: Optional[tuple[str, str]]) -> None:

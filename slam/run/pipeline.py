@@ -43,6 +43,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
+from frontend.dynamic_filter import method_names
 from slam.core.config import SlamConfig
 from slam.datasets.base import RGBDDataset
 from slam.run.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
@@ -186,7 +187,8 @@ class Pipeline:
         self.summary.keyframes = self.system.num_keyframes
         self.summary.landmarks = self.system.num_landmarks
         self.summary.timing_ms = self.system.timer.summary()
-        self.summary.dynamic_methods = list(self.config.dynamic.methods)
+        # What ran, not what was asked: without a detector model only the detector-free methods run.
+        self.summary.dynamic_methods = method_names(self.system.dynamic_filter)
         stats = self.system.dynamic_filter.stats
         if stats is not None:
             self.summary.dynamic_flagged = stats.summary()
