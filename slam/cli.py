@@ -172,7 +172,8 @@ def _demo_sequence(args):
 def _demo_run(sequence, config, output: Path, args):
     """One run of the demo; (summary, interrupted)."""
     from frontend.dynamic.oracle import synthetic_oracle
-    from slam.datasets.synthetic_scenes import HardScene, scene_detector
+    from slam.datasets.synthetic_scenes import HardScene
+    from slam.run.dynamic_eval import scene_detector
     from slam.run.pipeline import Pipeline
 
     progress = _progress_printer(args.frames, args.quiet)

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from conftest import synthetic_config, synthetic_sequence
-from slam.datasets.synthetic_scenes import HARD_SCENES, MISS_COVERAGE, HardScene, scene_detector
-from slam.run.dynamic_eval import evaluate_synthetic
+from slam.datasets.synthetic_scenes import HARD_SCENES, MISS_COVERAGE, HardScene
+from slam.run.dynamic_eval import evaluate_synthetic, scene_detector
 
 FRAMES = 150
 MAX_FRAME_ERROR_M = 0.05     # the bar: a tracked frame further off than this should have been LOST

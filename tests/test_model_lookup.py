@@ -102,11 +102,19 @@ def test_an_explicit_missing_model_is_an_error_not_a_fallback(no_model, tmp_path
         _filter("dynamic_all")
 
 
+def _tum_folder(tmp_path, frames: int):
+    """A generated room written as a TUM folder: `dynslam run` looks its detector model up (the demo
+    uses the scene's own boxes and needs none)."""
+    from slam.datasets import SyntheticSequence, write_tum_layout
+
+    return write_tum_layout(SyntheticSequence(n_frames=frames), tmp_path / "seq")
+
+
 def test_cli_run_without_a_model_uses_cpr_and_warns_once(no_model, tmp_path, recwarn, monkeypatch):
     """(pytest records the warnings; outside it the CLI prints each as one 'dynslam: warning:' line.)"""
     monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)
     out = tmp_path / "out"
-    assert main(["demo", "--frames", "4", "-o", str(out), "-q", "-c", "dynamic_all"]) == 0
+    assert main(["run", str(_tum_folder(tmp_path, 4)), "-o", str(out), "-q", "-c", "dynamic_all"]) == 0
     missing = [str(w.message) for w in recwarn if w.category is DetectorModelMissingWarning]
     assert len(missing) == 1 and missing[0].endswith(f"Get the model with: {COMMAND}")
     summary = json.loads((out / "summary.json").read_text())
@@ -116,7 +124,8 @@ def test_cli_run_without_a_model_uses_cpr_and_warns_once(no_model, tmp_path, rec
 
 def test_cli_run_of_detector_methods_without_a_model_is_exit_2(no_model, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)
-    assert main(["demo", "--frames", "3", "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_box_depth"]) == 2
+    assert main(["run", str(_tum_folder(tmp_path, 3)), "-o", str(tmp_path / "out"), "-q",
+                 "-c", "dynamic_box_depth"]) == 2
     err = capsys.readouterr().err
     assert f"download it with: {COMMAND}" in err and "Traceback" not in err
 
@@ -132,7 +141,7 @@ def test_downloaded_model_is_what_a_run_then_loads(no_model, server, tmp_path, c
     assert main(["download", "model", "--base-url", server.base_url]) == 0
     assert (no_model / "yolox_nano_416.onnx").read_bytes() == body
     out = tmp_path / "out"
-    assert main(["demo", "--frames", "3", "-o", str(out), "-q", "-c", "dynamic_box_depth"]) == 0
+    assert main(["run", str(_tum_folder(tmp_path, 3)), "-o", str(out), "-q", "-c", "dynamic_box_depth"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["dynamic_methods"] == ["box_depth"] and "dynamic.detector" in summary["timing_ms"]
     assert "no detector model" not in capsys.readouterr().err

@@ -17,8 +17,8 @@ import sys
 import yaml
 
 from slam.datasets import SyntheticSequence
-from slam.datasets.synthetic_scenes import HARD_SCENES, HardScene, scene_detector
-from slam.run.dynamic_eval import evaluate_synthetic, synthetic_config
+from slam.datasets.synthetic_scenes import HARD_SCENES, HardScene
+from slam.run.dynamic_eval import evaluate_synthetic, scene_detector, synthetic_config
 
 ORACLE_MARGIN_PX = 8   # = slam.cli.DEMO_ORACLE_MARGIN_PX: true boxes widened as a detector's are
 

@@ -14,8 +14,8 @@ the scenes here are the opposite, scripted against the camera path so that they 
 * ``border``: a person walking towards the camera cut by the image border; the detector misses them
   while only a sliver is visible.
 
-``HardScene.detector_misses`` lists the frames on which ``scene_detector`` (the ground-truth boxes)
-drops the person, as a detector would; the rules are stated where the misses are chosen.
+``HardScene.detector_misses`` lists the frames on which ``slam.run.dynamic_eval.scene_detector`` (the
+ground-truth boxes) drops the person, as a detector would; the rules are stated where the misses are chosen.
 """
 from __future__ import annotations
 
@@ -165,14 +165,6 @@ class HardScene(SyntheticSequence):
             acc += self.render(self.pose(time + offset), time + offset)[0]
         out.rgb = np.round(acc / BLUR_SAMPLES).astype(np.uint8)
         return out
-
-
-def scene_detector(scene: HardScene, margin_px: int = 0):
-    """The ground-truth person boxes of ``scene`` (see ``frontend.dynamic.oracle``), without the frames
-    in ``scene.detector_misses``."""
-    from frontend.dynamic.oracle import synthetic_oracle
-
-    return synthetic_oracle(scene, margin_px=margin_px, skip_frames=scene.detector_misses)
 
 
 def _walker(body, at: np.ndarray, direction: np.ndarray, speed: float, t_at: float,

@@ -52,6 +52,12 @@ def synthetic_config(sequence: SyntheticSequence, methods: list[str] | None = No
     return config
 
 
+def scene_detector(scene, margin_px: int = 0):
+    """The ground-truth person boxes of a ``HardScene`` (``frontend.dynamic.oracle``), widened by
+    ``margin_px``, without the frames in ``scene.detector_misses``."""
+    return synthetic_oracle(scene, margin_px=margin_px, skip_frames=scene.detector_misses)
+
+
 def boundary_band(mask: np.ndarray, radius: int) -> np.ndarray:
     """Pixels within ``radius`` of the boundary between True and False regions."""
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
