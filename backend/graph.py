@@ -20,13 +20,14 @@ needs them to converge after relinearisation, see docs/engineering notes).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Iterable, Optional
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
+from slam.core.config import BackendConfig
 from slam.core.errors import RuntimeFailure
 
 
@@ -43,15 +44,23 @@ class StereoCalibration:
     baseline: float
 
 
+def _config_default(name: str):
+    """The default of ``backend.<name>`` in the run config: one set of defaults for both entry points."""
+    return BackendConfig.model_fields[name].default
+
+
 @dataclass
 class BackendParams:
-    relinearize_threshold: float = 0.01
-    relinearize_skip: int = 1
-    extra_updates: int = 1
-    pixel_sigma: float = 1.0
-    depth_noise_coeff: float = 0.0015
-    huber_k: float = 2.8
-    max_dynamic_inflation: float = 100.0
+    """What the graph needs. The shared parameters default to the config's ``backend`` section, so
+    ``FactorGraphBackend(BackendParams(), calib)`` computes what a run with default settings does."""
+
+    relinearize_threshold: float = _config_default("relinearize_threshold")
+    relinearize_skip: int = _config_default("relinearize_skip")
+    extra_updates: int = _config_default("extra_updates")
+    pixel_sigma: float = _config_default("pixel_sigma")
+    depth_noise_coeff: float = _config_default("depth_noise_coeff")
+    huber_k: float = _config_default("huber_k")
+    max_dynamic_inflation: float = _config_default("max_dynamic_inflation")
     prior_sigma: float = 1e-4
     # A very weak prior (metres) at each landmark's first estimate. It never competes with real
     # observations (1 px at 3 m is ~6 mm), but keeps the system solvable when every observation of a
@@ -60,9 +69,10 @@ class BackendParams:
     landmark_prior_sigma: float = 100.0
 
     @classmethod
-    def from_config(cls, cfg) -> "BackendParams":
-        return cls(cfg.relinearize_threshold, cfg.relinearize_skip, cfg.extra_updates, cfg.pixel_sigma,
-                   cfg.depth_noise_coeff, cfg.huber_k, cfg.max_dynamic_inflation)
+    def from_config(cls, cfg: BackendConfig) -> "BackendParams":
+        """The graph's parameters from a run's ``backend`` section (the priors keep their defaults)."""
+        shared = {f.name: getattr(cfg, f.name) for f in fields(cls) if f.name in BackendConfig.model_fields}
+        return cls(**shared)
 
 
 def pose3(T: np.ndarray) -> gtsam.Pose3:

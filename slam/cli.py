@@ -40,31 +40,32 @@ def _parse_overrides(pairs: Sequence[str]) -> dict:
     return overrides
 
 
-def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str], overrides: dict):
+def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str], overrides: dict,
+                       fixed: Optional[dict] = None, fixed_source: str = "demo"):
     """Defaults, then the camera of the dataset (a bag's CameraInfo, an image folder's intrinsics.yaml,
     a TUM folder's camera.yaml, else a preset guessed from the name), then the user's files in order,
-    then --set overrides."""
-    from slam.core.config import SlamConfig, apply_overrides, apply_yaml
+    then ``fixed`` dotted values of the command (the demo's generated camera), then --set overrides:
+    merged first and validated once, an error naming the layer that set the key."""
+    from slam.core.config import CameraConfig, build_config, overrides_layer, yaml_layer
     from slam.datasets import guess_camera, read_camera
 
-    config = SlamConfig()
-    camera_known = False
+    layers = []
     if dataset_path is not None:
         found = read_camera(dataset_path)
         guessed = guess_camera(dataset_path)
         if found:
             intrinsics, source = found
-            known = {f"camera.{k}": v for k, v in intrinsics.items() if hasattr(config.camera, k)}
-            apply_overrides(config, known, str(source))
-            camera_known = True
+            known = {f"camera.{k}": v for k, v in intrinsics.items() if k in CameraConfig.model_fields}
+            layers.append(overrides_layer(known, str(source)))
         elif guessed:
-            apply_yaml(config, guessed)
-            camera_known = True
-    for path in config_files:
-        apply_yaml(config, path)
-        camera_known = True
+            layers.append(yaml_layer(guessed))
+    camera_known = bool(layers) or bool(config_files)
+    layers += [yaml_layer(path) for path in config_files]
+    if fixed:
+        layers.append(overrides_layer(fixed, fixed_source))
     if overrides:
-        apply_overrides(config, overrides, "--set")
+        layers.append(overrides_layer(overrides, "--set"))
+    config = build_config(layers)
     if dataset_path is not None and not camera_known:
         logging.getLogger("dynslam").warning(
             "camera not recognised (no camera_info, intrinsics.yaml or camera.yaml, and the name "
@@ -138,10 +139,11 @@ def cmd_demo(args) -> int:
     output = ensure_output_dir(args.output or _default_output("synthetic"))
     sequence = _demo_sequence(args)
     fx, fy, cx, cy = sequence.intrinsics
-    overrides = {"camera.name": "synthetic", "camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
+    generated = {"camera.name": "synthetic", "camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
                  "camera.width": sequence.width, "camera.height": sequence.height,
-                 "camera.distortion": [0.0] * 5, "seed": args.seed, **_parse_overrides(args.set)}
-    config = resolve_run_config(None, args.config, overrides)
+                 "camera.distortion": [0.0] * 5, "seed": args.seed}
+    overrides = _parse_overrides(args.set)
+    config = resolve_run_config(None, args.config, overrides, generated, "demo (generated room)")
     movers = "" if args.movers == "none" else f" with {args.movers.replace('_', ' ')}"
     print(f"dynslam demo: {args.frames} frames of a generated textured room{movers} (seed {args.seed})",
           file=sys.stderr)
@@ -150,7 +152,8 @@ def cmd_demo(args) -> int:
     if interrupted or not dynamic_on or args.no_compare:
         return EXIT_INTERRUPTED if interrupted else 0
     # The same room and path with dynamic handling off: what the front end buys, side by side.
-    off = resolve_run_config(None, args.config, {**overrides, "dynamic.methods": [], "dynamic.box_prior": 0.0})
+    off = resolve_run_config(None, args.config, {**overrides, "dynamic.methods": [], "dynamic.box_prior": 0.0},
+                             generated, "demo (generated room)")
     print("dynslam demo: the same run with dynamic handling off, for comparison", file=sys.stderr)
     off_summary, interrupted = _demo_run(_demo_sequence(args), off, ensure_output_dir(output / "without_dynamic"),
                                          args)
@@ -284,6 +287,13 @@ def cmd_export(args) -> int:
 
 
 def cmd_config(args) -> int:
+    if args.schema:
+        from slam.core.config import ConfigError, config_schema
+
+        if args.config or args.set:
+            raise ConfigError("--schema describes every config file: it takes no --config or --set")
+        print(json.dumps(config_schema(), indent=2))
+        return 0
     config = resolve_run_config(None, args.config, _parse_overrides(args.set))
     print(config.to_yaml(), end="")
     return 0
@@ -402,6 +412,9 @@ def _tool_parsers(sub) -> None:
 
     cfg = _command(sub, "config", help="print the default (or resolved) configuration as YAML")
     _config_options(cfg)
+    cfg.add_argument("--schema", action="store_true",
+                     help="print the JSON schema of config files instead (for editors, e.g. the YAML "
+                          "language server: '# yaml-language-server: $schema=dynslam.schema.json')")
     cfg.set_defaults(func=cmd_config)
 
 

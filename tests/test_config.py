@@ -1,7 +1,6 @@
 """Tests for slam.core.config: defaults, presets, and error messages that name the file and the dotted key."""
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import pytest
@@ -73,8 +72,8 @@ def test_presets_load_with_documented_intrinsics(preset):
     assert config.tracking == defaults.tracking
     assert config.keyframes == defaults.keyframes
     # Only the sensor's depth noise differs between camera presets (Bonn's Xtion is noisier).
-    expected_backend = dataclasses.replace(defaults.backend, depth_noise_coeff=0.05 if preset == "bonn"
-                                           else defaults.backend.depth_noise_coeff)
+    expected_backend = defaults.backend.model_copy(update={"depth_noise_coeff": 0.05 if preset == "bonn"
+                                                           else defaults.backend.depth_noise_coeff})
     assert config.backend == expected_backend
 
 
@@ -263,7 +262,7 @@ def test_modified_config_round_trips(tmp_path):
     config = load_config("tum_fr1", overrides={"tracking.match_ratio": 0.65, "orb.n_features": 1234})
     path = write(tmp_path, config.to_yaml(), "dump.yaml")
     assert load_config(path) == config
-    assert dataclasses.asdict(load_config(path)) == config.to_dict()
+    assert load_config(path).model_dump() == config.to_dict()
 
 
 def test_unknown_preset_lists_the_presets():

@@ -618,11 +618,11 @@ def test_detection_cache_is_keyed_by_the_model_files_content(tmp_path, monkeypat
     assert model_digest(copy) == model_digest(changed)
 
     image = np.zeros((480, 640, 3), np.uint8)
-    first = build_detector(replace(cfg, path=str(yolox)), ClassGroups(), "seq")
+    first = build_detector(cfg.model_copy(update={"path": str(yolox)}), ClassGroups(), "seq")
     first.detect(image, 1.0)
     first.close()
     assert first.cache_file.is_file()
-    other = build_detector(replace(cfg, path=str(changed)), ClassGroups(), "seq")
+    other = build_detector(cfg.model_copy(update={"path": str(changed)}), ClassGroups(), "seq")
     assert isinstance(other, CachedDetector) and other.cache_file != first.cache_file and len(other) == 0
     other.detect(image, 1.0)
     assert other.misses == 1 and other.hits == 0, "boxes of another model are never read"

@@ -198,7 +198,7 @@ def test_plan_grid_bounds_memory_whatever_the_scene():
     ("export.voxel_size", 0.0, "'export.voxel_size' must be > 0"),
     ("export.voxel_size", -0.01, "'export.voxel_size' must be > 0"),
     ("export.truncation", 0.01, "'export.truncation' (0.01) must be at least twice"),
-    ("export.max_voxels", 0, "'export.max_voxels' must be > 0"),
+    ("export.max_voxels", 0, "'export.max_voxels' must be >= 1"),
     ("export.mask_threshold", 1.5, "'export.mask_threshold' must be within [0, 1]"),
     ("export.mask_dilate_px", -1, "'export.mask_dilate_px' must be >= 0"),
     ("export.depth_edge_ratio", -0.1, "'export.depth_edge_ratio' must be >= 0"),

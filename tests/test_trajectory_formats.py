@@ -88,7 +88,7 @@ def test_cli_format_names_match_the_config():
 def test_unknown_format_in_the_config_is_a_clear_error():
     config = apply_overrides(SlamConfig(), {"output.trajectory_formats": ["tum", "kitti", "euroc"]})
     assert config.output.trajectory_formats == ["tum", "kitti", "euroc"]
-    with pytest.raises(ConfigError, match=r"output.trajectory_formats.*\['kiti'\].*valid: tum, kitti, euroc"):
+    with pytest.raises(ConfigError, match=r"'output.trajectory_formats' item \[0\] must be one of 'tum', 'kitti' or 'euroc', got 'kiti'"):
         apply_overrides(SlamConfig(), {"output.trajectory_formats": ["kiti"]})
 
 

@@ -1,152 +1,222 @@
 """Typed configuration of the dynamic front end: detector, class groups, fusion and the four methods.
 
 Parameter defaults follow the papers in ``../shared/seeds`` (see ``docs/dynamic.md`` for where we
-deviate and why). Lives in ``slam`` so the config loader validates it with everything else.
+deviate and why). Lives in ``slam`` so the config loader validates it with everything else. Each limit
+sits beside its field; method weights and every probability lie in [0, 1] (fusion multiplies them).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from typing import Annotated, Literal, get_args
 
-METHOD_NAMES = ("cpr", "box_depth", "flow_epipolar", "depth_sdf")
-FUSION_MODES = ("single", "max", "noisy_or")
-DETECTOR_MODELS = ("yolox_nano", "nanodet")
+from pydantic import Field, field_validator, model_validator
+
+from slam.core.config_base import ConfigSection, rule_error
+
+MethodName = Literal["cpr", "box_depth", "flow_epipolar", "depth_sdf"]
+FusionMode = Literal["single", "max", "noisy_or"]
+DetectorModel = Literal["yolox_nano", "nanodet"]
+METHOD_NAMES: tuple[str, ...] = get_args(MethodName)
+FUSION_MODES: tuple[str, ...] = get_args(FusionMode)
+DETECTOR_MODELS: tuple[str, ...] = get_args(DetectorModel)
+
+CocoClass = Annotated[int, Field(ge=0, le=79)]   # the detectors' 80 COCO classes, 0-based
+_UNIT = dict(ge=0, le=1)   # weights and probabilities
 
 
-@dataclass
-class DetectorConfig:
-    model: str = "yolox_nano"
-    # Empty: $DYNSLAM_DETECTOR_MODEL, else the model cache (dynslam download model), else
-    # ../shared/models/<model file> beside the checkout (frontend/model_lookup.py).
+class DetectorConfig(ConfigSection):
+    model: DetectorModel = "yolox_nano"
     path: str = ""
-    score_threshold: float = 0.3
-    nms_iou: float = 0.45
-    threads: int = 1
-    # Folder for per-sequence detection caches (empty = no cache).
+    """Empty: $DYNSLAM_DETECTOR_MODEL, else the model cache (dynslam download model), else
+    ../shared/models/<model file> beside the checkout (frontend/model_lookup.py)."""
+    score_threshold: float = Field(0.3, **_UNIT)
+    nms_iou: float = Field(0.45, **_UNIT)
+    threads: int = Field(1, ge=1)
     cache_dir: str = ""
+    """Folder for per-sequence detection caches (empty = no cache)."""
 
 
-@dataclass
-class ClassGroups:
+class ClassGroups(ConfigSection):
     """COCO class ids (0-based). Dynamic targets (PDT), high/low-probability passive movers."""
 
-    dynamic: list[int] = field(default_factory=lambda: [0, 15, 16, 17])          # person, cat, dog, horse
-    high_passive: list[int] = field(default_factory=lambda: [24, 25, 26, 28, 39, 41, 56, 63, 64, 65, 66, 67, 73])
-    low_passive: list[int] = field(default_factory=lambda: [57, 58, 59, 60, 62])
-    high_passive_prob: float = 0.8
-    low_passive_prob: float = 0.25
+    dynamic: list[CocoClass] = Field(default_factory=lambda: [0, 15, 16, 17])   # person, cat, dog, horse
+    high_passive: list[CocoClass] = Field(
+        default_factory=lambda: [24, 25, 26, 28, 39, 41, 56, 63, 64, 65, 66, 67, 73])
+    low_passive: list[CocoClass] = Field(default_factory=lambda: [57, 58, 59, 60, 62])
+    high_passive_prob: float = Field(0.8, **_UNIT)
+    low_passive_prob: float = Field(0.25, **_UNIT)
+
+    @model_validator(mode="after")
+    def _disjoint(self) -> "ClassGroups":
+        groups = {"dynamic": self.dynamic, "high_passive": self.high_passive, "low_passive": self.low_passive}
+        names = list(groups)
+        for i, a in enumerate(names):
+            for b in names[i + 1:]:
+                shared = sorted(set(groups[a]) & set(groups[b]))
+                if shared:
+                    raise rule_error(f"class id(s) {shared} are in both '{a}' and '{b}': a class has one "
+                                     "role", a, b)
+        if self.low_passive_prob > self.high_passive_prob:
+            raise rule_error(f"'low_passive_prob' ({self.low_passive_prob}) must not exceed 'high_passive_prob' "
+                             f"({self.high_passive_prob})", "low_passive_prob", "high_passive_prob")
+        return self
 
 
-@dataclass
-class CprConfig:
+class CprConfig(ConfigSection):
     """Sub-point-cloud correlation (CPR-SLAM, seed 000)."""
 
-    weight: float = 1.0
-    sample_step: int = 4
-    max_depth: float = 6.0
-    voxel_size: float = 0.05
-    mls_radius: float = 0.1
-    clusters: int = 10
-    sigma_frame: int = 2
-    sigma_keyframe: int = 5
-    candidates: int = 10
-    student_nu: float = 5.0
-    icp_iterations: int = 6
-    mad_scale: float = 1.4826
-    circle_radius: int = 6
-    refine_window: int = 6
-    rho_keyframe: float = 3.0
-    rho_frame: float = 2.0
-    tau: float = 0.6
-    seed: int = 0
+    weight: float = Field(1.0, **_UNIT)
+    sample_step: int = Field(4, ge=1)   # pixels between samples
+    max_depth: float = Field(6.0, gt=0)
+    voxel_size: float = Field(0.05, gt=0)
+    mls_radius: float = Field(0.1, gt=0)
+    clusters: int = Field(10, ge=1)
+    sigma_frame: int = Field(2, ge=1)   # frames back to the reference
+    sigma_keyframe: int = Field(5, ge=1)
+    candidates: int = Field(10, ge=1)
+    student_nu: float = Field(5.0, gt=0)   # Student-t degrees of freedom
+    icp_iterations: int = Field(6, ge=1)
+    mad_scale: float = Field(1.4826, gt=0)
+    circle_radius: int = Field(6, ge=0)   # pixels painted around each dynamic sample
+    refine_window: int = Field(6, ge=1)
+    rho_keyframe: float = Field(3.0, gt=0)   # mask weights of Algorithm 1 (the total must be > 0)
+    rho_frame: float = Field(2.0, gt=0)
+    tau: float = Field(0.6, **_UNIT)   # fraction of the total weight (Algorithm 1)
+    seed: int = Field(0, ge=0)
     # Choices where the paper gives no number (reasons in frontend/dynamic/cpr.py).
-    icp_intensity_iterations: int = 3   # the first ones of icp_iterations; the rest are plain ICP
-    icp_max_points: int = 150           # points per sub-cloud used for its sub-pose
-    score_points: int = 800             # source points averaged in R(j)
-    score_candidates: int = 4           # nearest reference points searched per point for R(j)
-    min_score_ratio: float = 1.0        # dynamic also needs R(j) > ratio * median(R); 1.0 = paper only
-    refine: bool = False                # Algorithm 1 on every frame's output (off: raw mask, see cpr.py)
-    keyframe_recompute: bool = False    # keyframes: recompute the mask against sigma_keyframe in end_frame
+    icp_intensity_iterations: int = Field(3, ge=0)
+    """The first ones of icp_iterations; the rest are plain ICP."""
+    icp_max_points: int = Field(150, ge=3)
+    """Points per sub-cloud used for its sub-pose (a rigid pose needs 3)."""
+    score_points: int = Field(800, ge=1)
+    """Source points averaged in R(j)."""
+    score_candidates: int = Field(4, ge=1)
+    """Nearest reference points searched per point for R(j)."""
+    min_score_ratio: float = Field(1.0, ge=0)
+    """Dynamic also needs R(j) > ratio * median(R); 1.0 (or less) = the paper only."""
+    refine: bool = False
+    """Algorithm 1 on every frame's output (off: raw mask, see cpr.py)."""
+    keyframe_recompute: bool = False
+    """Keyframes: recompute the mask against sigma_keyframe in end_frame."""
+
+    @model_validator(mode="after")
+    def _intensity_within_icp(self) -> "CprConfig":
+        if self.icp_intensity_iterations > self.icp_iterations:
+            raise rule_error(f"'icp_intensity_iterations' ({self.icp_intensity_iterations}) must not exceed "
+                             f"'icp_iterations' ({self.icp_iterations}): they are the first of those",
+                             "icp_intensity_iterations", "icp_iterations")
+        return self
 
 
-@dataclass
-class BoxDepthConfig:
+class BoxDepthConfig(ConfigSection):
     """Bounding box + depth continuity (Fang et al., seed 001)."""
 
-    weight: float = 1.0
-    omega_pixel: float = 0.05        # depth step (m) the flood fill may cross between neighbours
-    omega_pixel_passive: float = 0.1
-    height_ratio: float = 0.75
-    alpha: float = 1.0
-    omega: float = 0.01
-    k_passive: float = 5.0           # Eqs. 9/11 compare ratios >= 1 with K*p_pas: K must exceed 1/p_pas
-    reuse_radius_px: float = 3.0
-    reuse_gray: float = 10.0
-    reuse_depth: float = 0.05
-    reuse_prob: float = 0.3          # probability given to effective (reused) dynamic features
-    invalid_fill_px: int = 2         # invalid-depth pixels this close to a segment join it
+    weight: float = Field(1.0, **_UNIT)
+    omega_pixel: float = Field(0.05, gt=0)
+    """Depth step (m) the flood fill may cross between neighbours."""
+    omega_pixel_passive: float = Field(0.1, gt=0)
+    height_ratio: float = Field(0.75, gt=0, le=1)   # fraction of the box height a segment must span
+    alpha: float = Field(1.0, gt=0)   # Eq. 8: alpha * mean depth bounds the segment's depth
+    omega: float = Field(0.01, ge=0)   # Eq. 8: metres per pixel from the box side
+    k_passive: float = Field(5.0, gt=0)
+    """Eqs. 9/11 compare ratios >= 1 with K*p_pas: K must exceed 1/p_pas (checked with dynamic.classes)."""
+    reuse_radius_px: float = Field(3.0, ge=0)
+    reuse_gray: float = Field(10.0, ge=0, le=255)   # an 8-bit intensity difference
+    reuse_depth: float = Field(0.05, ge=0)
+    reuse_prob: float = Field(0.3, **_UNIT)
+    """Probability given to effective (reused) dynamic features."""
+    invalid_fill_px: int = Field(2, ge=0)
+    """Invalid-depth pixels this close to a segment join it."""
 
 
-@dataclass
-class FlowEpipolarConfig:
+class FlowEpipolarConfig(ConfigSection):
     """Optical flow + epipolar geometry + region probability (PPS-SLAM, seed 002)."""
 
-    weight: float = 1.0
-    epipolar_px: float = 2.0
-    sub_box_rows: int = 3
-    sub_box_cols: int = 3
-    region_ratio: float = 0.5
-    grid: int = 10
-    history: int = 10
-    cover_ratio: float = 0.65
-    likelihood_dynamic: float = 0.9
-    likelihood_static: float = 0.1
-    remove_threshold: float = 0.5
-    detector_score: float = 0.6
-    seed: int = 0
+    weight: float = Field(1.0, **_UNIT)
+    epipolar_px: float = Field(2.0, gt=0)
+    sub_box_rows: int = Field(3, ge=1)
+    sub_box_cols: int = Field(3, ge=1)
+    region_ratio: float = Field(0.5, **_UNIT)
+    grid: int = Field(10, ge=1)
+    history: int = Field(10, ge=1)
+    cover_ratio: float = Field(0.65, **_UNIT)
+    likelihood_dynamic: float = Field(0.9, **_UNIT)
+    likelihood_static: float = Field(0.1, **_UNIT)
+    remove_threshold: float = Field(0.5, **_UNIT)
+    detector_score: float = Field(0.6, **_UNIT)
+    seed: int = Field(0, ge=0)
     # Not in the paper (see frontend/dynamic/flow_epipolar.py): LK window/levels, forward-backward
     # check (px, 0 = off), RANSAC threshold for F, minimum tracks, F from points outside the boxes,
     # grid prior without history, posterior clamp [c, 1 - c] so that cells never freeze at 0 or 1.
-    lk_window: int = 21
-    lk_levels: int = 3
-    fb_max_px: float = 0.0
-    ransac_px: float = 1.0
-    min_tracks: int = 15
+    lk_window: int = Field(21, ge=3)   # OpenCV's LK needs a window of a few pixels
+    lk_levels: int = Field(3, ge=0)   # 0 = no pyramid
+    fb_max_px: float = Field(0.0, ge=0)
+    ransac_px: float = Field(1.0, gt=0)
+    min_tracks: int = Field(15, ge=8)   # the eight-point algorithm needs 8 correspondences for F
     f_outside_boxes: bool = True
-    initial_prior: float = 0.5
-    prob_clamp: float = 0.05
+    initial_prior: float = Field(0.5, **_UNIT)
+    prob_clamp: float = Field(0.05, ge=0, lt=0.5)   # [c, 1 - c] is empty from 0.5 on
+
+    @model_validator(mode="after")
+    def _likelihoods_ordered(self) -> "FlowEpipolarConfig":
+        if self.likelihood_static > self.likelihood_dynamic:
+            raise rule_error(f"'likelihood_static' ({self.likelihood_static}) must not exceed 'likelihood_dynamic' "
+                             f"({self.likelihood_dynamic}): covered cells would become less likely dynamic",
+                             "likelihood_static", "likelihood_dynamic")
+        return self
 
 
-@dataclass
-class DepthSdfConfig:
+class DepthSdfConfig(ConfigSection):
     """Depth standard-deviation fitting (CP-SLAM, seed 003)."""
 
-    weight: float = 1.0
-    iterations: int = 20
-    base_threshold: float = 0.02
-    min_sigma: float = 0.01          # floor of the two-point depth std (m): equal depths give sigma = 0
-    # "union": the inliers of every iteration are dynamic (the paper's Algorithm 1, S1 collects them);
-    # "best": only those of the model with the most inliers (see frontend/dynamic/depth_sdf.py).
-    combine: str = "union"
-    seed: int = 0
+    weight: float = Field(1.0, **_UNIT)
+    iterations: int = Field(20, ge=1)
+    base_threshold: float = Field(0.02, gt=0)   # metres
+    min_sigma: float = Field(0.01, gt=0)
+    """Floor of the two-point depth std (m): equal depths give sigma = 0."""
+    combine: Literal["union", "best"] = "union"
+    """"union": the inliers of every iteration are dynamic (the paper's Algorithm 1, S1 collects them);
+    "best": only those of the model with the most inliers (see frontend/dynamic/depth_sdf.py)."""
+    seed: int = Field(0, ge=0)
 
 
-@dataclass
-class DynamicConfig:
-    # Any subset of METHOD_NAMES; empty = dynamic handling off (every feature static).
-    methods: list[str] = field(default_factory=list)
-    fusion: str = "noisy_or"
-    detector: DetectorConfig = field(default_factory=DetectorConfig)
-    classes: ClassGroups = field(default_factory=ClassGroups)
-    cpr: CprConfig = field(default_factory=CprConfig)
-    box_depth: BoxDepthConfig = field(default_factory=BoxDepthConfig)
-    flow_epipolar: FlowEpipolarConfig = field(default_factory=FlowEpipolarConfig)
-    depth_sdf: DepthSdfConfig = field(default_factory=DepthSdfConfig)
-    # Features inside (dilated) dynamic-class boxes get at least this probability, fused like a
-    # method: below the tracking threshold, so a still person's features may still track, but above
-    # the landmark-admission threshold (backend.landmark_max_dynamic_prob), so nothing inside a
-    # person box enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 = off;
-    # the fused preset configs/dynamic_all.yaml uses 0.3.
-    box_prior: float = 0.0
-    box_prior_dilate_px: int = 10
-    # Optional folder for PNG mask overlays (empty = off).
+class DynamicConfig(ConfigSection):
+    """Dynamic-object handling: which methods run and how their probabilities are fused."""
+
+    methods: list[MethodName] = Field(default_factory=list)
+    """Any subset of the methods; empty = dynamic handling off (every feature static)."""
+    fusion: FusionMode = "noisy_or"
+    detector: DetectorConfig = Field(default_factory=DetectorConfig)
+    classes: ClassGroups = Field(default_factory=ClassGroups)
+    cpr: CprConfig = Field(default_factory=CprConfig)
+    box_depth: BoxDepthConfig = Field(default_factory=BoxDepthConfig)
+    flow_epipolar: FlowEpipolarConfig = Field(default_factory=FlowEpipolarConfig)
+    depth_sdf: DepthSdfConfig = Field(default_factory=DepthSdfConfig)
+    box_prior: float = Field(0.0, **_UNIT)
+    """Features inside (dilated) dynamic-class boxes get at least this probability, fused like a method:
+    below the tracking threshold, so a still person's features may still track, but above the
+    landmark-admission threshold (backend.landmark_max_dynamic_prob), so nothing inside a person box
+    enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 = off; the fused preset
+    configs/dynamic_all.yaml uses 0.3."""
+    box_prior_dilate_px: int = Field(10, ge=0)
     dump_masks_dir: str = ""
+    """Optional folder for PNG mask overlays (empty = off)."""
+
+    @field_validator("methods")
+    @classmethod
+    def _no_repeats(cls, methods: list[str]) -> list[str]:
+        if len(set(methods)) != len(methods):
+            raise rule_error(f"lists a method twice: {methods}")
+        return methods
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "DynamicConfig":
+        if self.fusion == "single" and len(self.methods) > 1:
+            raise rule_error(f"'fusion' is 'single' but {len(self.methods)} methods are enabled in 'methods' "
+                             "(use max or noisy_or to fuse several)", "fusion", "methods")
+        # Only box_depth reads k_passive; a passive probability of 0 switches that group off.
+        p_pas = self.classes.low_passive_prob   # the smaller one (ClassGroups checks)
+        if "box_depth" in self.methods and p_pas > 0 and not self.box_depth.k_passive * p_pas > 1:
+            raise rule_error(f"'box_depth.k_passive' ({self.box_depth.k_passive}) times 'classes.low_passive_prob' "
+                             f"({p_pas}) must exceed 1: Eqs. 9/11 compare ratios >= 1 with it",
+                             "box_depth.k_passive", "classes.low_passive_prob")
+        return self
