@@ -12,7 +12,6 @@ given explicitly that does not exist stays an error (exit status 2): the user as
 """
 from __future__ import annotations
 
-import dataclasses
 import importlib
 import warnings
 from typing import Optional
@@ -78,7 +77,7 @@ def without_detector(methods: list, dynamic, searched=()) -> tuple[list, object]
     dropped = [m.name for m in methods if m.needs_detector]
     dropped += ["the person-box prior"] if dynamic.box_prior > 0 else []
     fusion = "single" if len(kept) == 1 else dynamic.fusion
-    reduced = dataclasses.replace(dynamic, methods=[m.name for m in kept], box_prior=0.0, fusion=fusion)
+    reduced = dynamic.model_copy(update=dict(methods=[m.name for m in kept], box_prior=0.0, fusion=fusion))
     places = " or ".join(str(p) for p in searched) or "the usual places"
     warnings.warn(f"no detector model '{dynamic.detector.model}' found (looked for {places}); continuing "
                   f"with {', '.join(m.name for m in kept)} only "
