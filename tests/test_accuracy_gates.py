@@ -69,13 +69,13 @@ def test_loops_found_and_true(runs, name):
 
 
 def test_bonn_dynamic_handling_at_least_20x_better_than_off(runs):
-    gate = _gate(accuracy.gates({n: _ok(runs, n) for n in ("bonn_dynamic_all", "bonn_off")}), "Bonn: ATE off")
-    assert gate.passed, f"off / dynamic_all = {gate.value:.1f}x < {gate.bound}x"
+    gate = _gate(accuracy.gates({n: _ok(runs, n) for n in ("bonn", "bonn_static")}), "Bonn: ATE off")
+    assert gate.passed, f"off / on = {gate.value:.1f}x < {gate.bound}x"
 
 
 def test_static_sequence_dynamic_handling_within_10_percent_of_off(runs):
-    gate = _gate(accuracy.gates({n: _ok(runs, n) for n in ("rpy", "rpy_dynamic_all")}), "fr1/rpy: ATE dynamic")
-    assert gate.passed, f"dynamic_all / off = {gate.value:.3f} > {gate.bound}"
+    gate = _gate(accuracy.gates({n: _ok(runs, n) for n in ("rpy", "rpy_static")}), "fr1/rpy: ATE dynamic")
+    assert gate.passed, f"on / off = {gate.value:.3f} > {gate.bound}"
 
 
 def test_loop_closing_does_not_make_fr1_rpy_worse(runs):
@@ -93,7 +93,7 @@ def test_generated_people_handled(runs):
 
 @pytest.mark.parametrize("name", accuracy.DETERMINISM_CASES)
 def test_two_processes_give_byte_identical_trajectories(runs, accuracy_runs, name):
-    """Bonn with dynamic_all, loop closing and the real detector (no cache), and the generated room
+    """Bonn with the default (dynamic) config, loop closing and the real detector (no cache), and the generated room
     with people: the same input and config in two processes give the same trajectory.txt."""
     _ok(runs, name)
     assert accuracy_runs.identical[name], f"{name}: trajectory.txt differs between two processes"

@@ -225,9 +225,9 @@ def test_cli_errors_are_one_clear_line(people_run, tmp_path, capsys):
 # ------------------------------------------------------------------------------------- real data
 @pytest.fixture(scope="module")
 def bonn_run(accuracy_runs):
-    """The dynamic_all run on Bonn crowd that the accuracy gates make (one per test session, the real
-    detector), as ``dynslam run ../shared/data/rgbd_bonn_crowd_first480 -c dynamic_all``."""
-    result = accuracy_runs.get("bonn_dynamic_all")["bonn_dynamic_all"]
+    """The default (dynamic) run on Bonn crowd that the accuracy gates make (one per test session, the
+    real detector), as ``dynslam run ../shared/data/rgbd_bonn_crowd_first480``."""
+    result = accuracy_runs.get("bonn")["bonn"]
     assert result.returncode == 0, result.stderr
     out = result.results
     config = load_config(out / "config.yaml")

@@ -200,6 +200,7 @@ def test_strip_frames_unknown_length_stay_bounded_and_even(frames):
 
 def test_strip_recorder_only_for_dynamic_runs_with_reports():
     config = SlamConfig()
+    config.dynamic.methods = []          # dynamic handling off (configs/static.yaml)
     assert isinstance(make_strip_recorder(config, 10), NullStripRecorder)
     config.dynamic.methods = ["cpr"]
     assert isinstance(make_strip_recorder(config, 10), DynamicStripRecorder)

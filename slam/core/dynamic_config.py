@@ -64,7 +64,9 @@ class ClassGroups(ConfigSection):
 class CprConfig(ConfigSection):
     """Sub-point-cloud correlation (CPR-SLAM, seed 000)."""
 
-    weight: float = Field(1.0, **_UNIT)
+    weight: float = Field(0.2, **_UNIT)
+    """Trust in the noisy-OR fusion (ignored by fusion 'single'): its MAD threshold flags 1-2 static
+    sub-clouds in most frames, so alone it removes nothing (configs/dynamic_all.yaml)."""
     sample_step: int = Field(4, ge=1)   # pixels between samples
     max_depth: float = Field(6.0, gt=0)
     voxel_size: float = Field(0.05, gt=0)
@@ -131,7 +133,8 @@ class BoxDepthConfig(ConfigSection):
 class FlowEpipolarConfig(ConfigSection):
     """Optical flow + epipolar geometry + region probability (PPS-SLAM, seed 002)."""
 
-    weight: float = Field(1.0, **_UNIT)
+    weight: float = Field(0.45, **_UNIT)
+    """Noisy-OR trust: below 0.5 alone, so a second method must agree (configs/dynamic_all.yaml)."""
     epipolar_px: float = Field(2.0, gt=0)
     sub_box_rows: int = Field(3, ge=1)
     sub_box_cols: int = Field(3, ge=1)
@@ -168,7 +171,8 @@ class FlowEpipolarConfig(ConfigSection):
 class DepthSdfConfig(ConfigSection):
     """Depth standard-deviation fitting (CP-SLAM, seed 003)."""
 
-    weight: float = Field(1.0, **_UNIT)
+    weight: float = Field(0.45, **_UNIT)
+    """Noisy-OR trust: below 0.5 alone, so a second method must agree (configs/dynamic_all.yaml)."""
     iterations: int = Field(20, ge=1)
     base_threshold: float = Field(0.02, gt=0)   # metres
     min_sigma: float = Field(0.01, gt=0)
@@ -182,8 +186,9 @@ class DepthSdfConfig(ConfigSection):
 class DynamicConfig(ConfigSection):
     """Dynamic-object handling: which methods run and how their probabilities are fused."""
 
-    methods: list[MethodName] = Field(default_factory=list)
-    """Any subset of the methods; empty = dynamic handling off (every feature static)."""
+    methods: list[MethodName] = Field(default_factory=lambda: list(METHOD_NAMES))
+    """Any subset of the methods; empty (configs/static.yaml) = dynamic handling off, every feature
+    static. All four by default: a dynamic SLAM system handles people without being asked to."""
     fusion: FusionMode = "noisy_or"
     detector: DetectorConfig = Field(default_factory=DetectorConfig)
     classes: ClassGroups = Field(default_factory=ClassGroups)
@@ -191,12 +196,11 @@ class DynamicConfig(ConfigSection):
     box_depth: BoxDepthConfig = Field(default_factory=BoxDepthConfig)
     flow_epipolar: FlowEpipolarConfig = Field(default_factory=FlowEpipolarConfig)
     depth_sdf: DepthSdfConfig = Field(default_factory=DepthSdfConfig)
-    box_prior: float = Field(0.0, **_UNIT)
+    box_prior: float = Field(0.3, **_UNIT)
     """Features inside (dilated) dynamic-class boxes get at least this probability, fused like a method:
     below the tracking threshold, so a still person's features may still track, but above the
     landmark-admission threshold (backend.landmark_max_dynamic_prob), so nothing inside a person box
-    enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 = off; the fused preset
-    configs/dynamic_all.yaml uses 0.3."""
+    enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 = off."""
     box_prior_dilate_px: int = Field(10, ge=0)
     dump_masks_dir: str = ""
     """Optional folder for PNG mask overlays (empty = off)."""
