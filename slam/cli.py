@@ -81,6 +81,16 @@ def _progress_printer(total: int, quiet: bool):
     return ProgressPrinter(total, sys.stderr, quiet=quiet)
 
 
+def _viz_observers(args, config, dataset) -> list:
+    """The rerun observer asked for by --viz / --viz-save (none otherwise). Made before the dataset is
+    run, so a missing rerun SDK, a missing display or a bad path fails at once (exit status 2)."""
+    if not (args.viz or args.viz_save):
+        return []
+    from slam.run.viz_rerun import RerunObserver
+
+    return [RerunObserver(config, dataset.groundtruth(), save_path=args.viz_save)]
+
+
 def cmd_run(args) -> int:
     from slam.core.atomic_io import ensure_output_dir
     from slam.datasets import DatasetError, is_rosbag, open_dataset
@@ -109,9 +119,10 @@ def cmd_run(args) -> int:
         check_camera_compatible(prior_map.camera_info, config.camera, args.load_map)
     if args.save_map and not Path(args.save_map).parent.is_dir():
         raise FileNotFoundError(f"--save-map: folder {Path(args.save_map).parent} does not exist")
+    observers = _viz_observers(args, config, dataset)
     progress = _progress_printer(total, args.quiet)
     pipeline = Pipeline(dataset, config, output, args.max_frames, progress,
-                        save_map=args.save_map, prior_map=prior_map)
+                        save_map=args.save_map, prior_map=prior_map, observers=observers)
     summary = pipeline.run()
     progress.finish()
     print(pipeline.format_summary())
@@ -141,6 +152,7 @@ def cmd_demo(args) -> int:
                  "camera.width": sequence.width, "camera.height": sequence.height,
                  "camera.distortion": [0.0] * 5, "seed": args.seed}
     config = resolve_run_config(None, args.config, {**overrides, **_parse_overrides(args.set)})
+    observers = _viz_observers(args, config, sequence)
     output = ensure_output_dir(args.output or _default_output("synthetic"))
     movers = "" if args.movers == "none" else f" with {args.movers} moving"
     print(f"dynslam demo: {args.frames} frames of a generated textured room{movers} (seed {args.seed})",
@@ -148,11 +160,11 @@ def cmd_demo(args) -> int:
     progress = _progress_printer(args.frames, args.quiet)
     # YOLOX does not detect the generated people: their true boxes (widened as a detector's are) stand in.
     detector = None if not sequence.movers else synthetic_oracle(sequence, margin_px=DEMO_ORACLE_MARGIN_PX)
-    pipeline = Pipeline(sequence, config, output, None, progress, detector=detector)
-    pipeline.run()
+    pipeline = Pipeline(sequence, config, output, None, progress, detector=detector, observers=observers)
+    summary = pipeline.run()
     progress.finish()
     print(pipeline.format_summary())
-    return 0
+    return EXIT_INTERRUPTED if summary.interrupted else 0
 
 
 def cmd_eval(args) -> int:
@@ -250,6 +262,14 @@ def _config_options(p) -> None:
                    help="override one config value, e.g. --set tracking.match_ratio=0.8")
 
 
+def _viz_options(p) -> None:
+    viz = p.add_mutually_exclusive_group()
+    viz.add_argument("--viz", action="store_true",
+                     help='watch the run live in the rerun viewer (needs pip install "dynslam[viz]")')
+    viz.add_argument("--viz-save", metavar="FILE.rrd",
+                     help="record the live view to FILE.rrd instead (open it later with `rerun FILE.rrd`)")
+
+
 def _slam_parsers(sub) -> None:
     """run and demo: the commands that run SLAM."""
     run = _command(sub, "run", help="run SLAM on a TUM/Bonn folder, a ROS 1/2 bag or an image folder")
@@ -262,6 +282,7 @@ def _slam_parsers(sub) -> None:
     run.add_argument("--save-map", metavar="PATH", help="save the final map to PATH (.npz, written atomically)")
     run.add_argument("--load-map", metavar="PATH",
                      help="localisation only: track against the map saved at PATH, which stays unchanged")
+    _viz_options(run)
     _config_options(run)
     run.set_defaults(func=cmd_run)
 
@@ -272,6 +293,7 @@ def _slam_parsers(sub) -> None:
                       help="moving objects in the room (their true boxes stand in for the detector); "
                            "add -c dynamic_all to handle them")
     demo.add_argument("--output", "-o", help="results folder (default results/synthetic_<time>)")
+    _viz_options(demo)
     _config_options(demo)
     demo.set_defaults(func=cmd_demo)
 
