@@ -160,8 +160,7 @@ class RerunObserver:
         self._log_trajectory(system)
         if output.T_wc is not None and not self._gt_logged:
             self._log_first_frame_ground_truth(output)
-        every = self.options.landmarks_every
-        if output.is_keyframe if every <= 0 else self.frames_logged % every == 0:
+        if self._landmarks_due(output):
             xyz, rgb = sparse_points(system.mapper.map)
             rec.log("world/landmarks", rr.Points3D(xyz, colors=rgb, radii=rr.Radius.ui_points(2.0)))
         self.frames_logged += 1
@@ -170,7 +169,7 @@ class RerunObserver:
     def on_finish(self, system: System, summary: RunSummary, report: Optional[EvaluationReport]) -> None:
         rr, rec = self.rr, self._open()
         try:
-            stamps, poses, tracked = system.trajectory()
+            _, poses, tracked = system.trajectory()
             final = thin_path(poses[tracked][:, :3, 3], self.options.max_trajectory_points)
             rec.log("world/trajectory_final", rr.LineStrips3D([final], colors=[[255, 200, 0]]), static=True)
             if report is not None and self.groundtruth is not None:
@@ -206,6 +205,11 @@ class RerunObserver:
         rec.log("world/camera/image/dynamic_mask",
                 rr.AnnotationContext([(0, "static", (0, 0, 0, 0)), (1, "dynamic", (255, 0, 0, 110))]), static=True)
         return rec
+
+    def _landmarks_due(self, output: FrameOutput) -> bool:
+        """The map only grows at keyframes, so by default that is when its cloud is re-logged."""
+        every = self.options.landmarks_every
+        return output.is_keyframe if every <= 0 else self.frames_logged % every == 0
 
     def _log_images(self, frame: RGBDFrame, output: FrameOutput, system: System) -> None:
         rr, rec, opts = self.rr, self._rec, self.options
