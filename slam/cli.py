@@ -85,6 +85,16 @@ def _progress_printer(total: int, quiet: bool):
     return ProgressPrinter(total, sys.stderr, quiet=quiet)
 
 
+def _viz_observers(args, config, dataset) -> list:
+    """The rerun observer asked for by --viz / --viz-save (none otherwise). Made before the dataset is
+    run, so a missing rerun SDK, a missing display or a bad path fails at once (exit status 2)."""
+    if not (args.viz or args.viz_save):
+        return []
+    from slam.run.viz_rerun import RerunObserver
+
+    return [RerunObserver(config, dataset.groundtruth(), save_path=args.viz_save)]
+
+
 def cmd_run(args) -> int:
     from slam.core.atomic_io import ensure_output_dir
     from slam.datasets import DatasetError, is_rosbag, open_dataset
@@ -113,9 +123,10 @@ def cmd_run(args) -> int:
         check_camera_compatible(prior_map.camera_info, config.camera, args.load_map)
     if args.save_map and not Path(args.save_map).parent.is_dir():
         raise FileNotFoundError(f"--save-map: folder {Path(args.save_map).parent} does not exist")
+    observers = _viz_observers(args, config, dataset)
     progress = _progress_printer(total, args.quiet)
     pipeline = Pipeline(dataset, config, output, args.max_frames, progress,
-                        save_map=args.save_map, prior_map=prior_map)
+                        save_map=args.save_map, prior_map=prior_map, observers=observers)
     summary = pipeline.run()
     progress.finish()
     print(pipeline.format_summary())
@@ -144,11 +155,12 @@ def cmd_demo(args) -> int:
                  "camera.distortion": [0.0] * 5, "seed": args.seed}
     overrides = _parse_overrides(args.set)
     config = resolve_run_config(None, args.config, overrides, generated, "demo (generated room)")
+    observers = _viz_observers(args, config, sequence)
     movers = "" if args.movers == "none" else f" with {args.movers.replace('_', ' ')}"
     print(f"dynslam demo: {args.frames} frames of a generated textured room{movers} (seed {args.seed})",
           file=sys.stderr)
     dynamic_on = bool(config.dynamic.methods) or config.dynamic.box_prior > 0
-    summary, interrupted = _demo_run(sequence, config, output, args)
+    summary, interrupted = _demo_run(sequence, config, output, args, observers)
     if interrupted or not dynamic_on or args.no_compare:
         return EXIT_INTERRUPTED if interrupted else 0
     # The same room and path with dynamic handling off: what the front end buys, side by side.
@@ -156,7 +168,7 @@ def cmd_demo(args) -> int:
                              generated, "demo (generated room)")
     print("dynslam demo: the same run with dynamic handling off, for comparison", file=sys.stderr)
     off_summary, interrupted = _demo_run(_demo_sequence(args), off, ensure_output_dir(output / "without_dynamic"),
-                                         args)
+                                         args, ())
     if summary.ate_rmse_m is not None and off_summary.ate_rmse_m is not None:
         print(f"ATE with dynamic handling {summary.ate_rmse_m * 1000:.1f} mm ({output}), "
               f"without {off_summary.ate_rmse_m * 1000:.1f} mm ({output / 'without_dynamic'})")
@@ -172,8 +184,8 @@ def _demo_sequence(args):
     return SyntheticSequence(n_frames=args.frames, seed=args.seed, movers=args.movers)
 
 
-def _demo_run(sequence, config, output: Path, args):
-    """One run of the demo; (summary, interrupted)."""
+def _demo_run(sequence, config, output: Path, args, observers):
+    """One run of the demo (``observers``: the live view, for the first run only); (summary, interrupted)."""
     from frontend.dynamic.oracle import synthetic_oracle
     from slam.datasets.synthetic_scenes import HardScene
     from slam.run.dynamic_eval import scene_detector
@@ -186,7 +198,7 @@ def _demo_run(sequence, config, output: Path, args):
         detector = scene_detector(sequence, margin_px=DEMO_ORACLE_MARGIN_PX)
     else:
         detector = synthetic_oracle(sequence, margin_px=DEMO_ORACLE_MARGIN_PX)
-    pipeline = Pipeline(sequence, config, output, None, progress, detector=detector)
+    pipeline = Pipeline(sequence, config, output, None, progress, detector=detector, observers=observers)
     summary = pipeline.run()
     progress.finish()
     print(pipeline.format_summary())
@@ -306,6 +318,14 @@ def _config_options(p) -> None:
                    help="override one config value, e.g. --set tracking.match_ratio=0.8")
 
 
+def _viz_options(p) -> None:
+    viz = p.add_mutually_exclusive_group()
+    viz.add_argument("--viz", action="store_true",
+                     help='watch the run live in the rerun viewer (needs pip install "dynslam[viz]")')
+    viz.add_argument("--viz-save", metavar="FILE.rrd",
+                     help="record the live view to FILE.rrd instead (open it later with `rerun FILE.rrd`)")
+
+
 def _slam_parsers(sub) -> None:
     """run and demo: the commands that run SLAM."""
     run = _command(sub, "run", help="run SLAM on a TUM/Bonn folder, a ROS 1/2 bag or an image folder")
@@ -318,6 +338,7 @@ def _slam_parsers(sub) -> None:
     run.add_argument("--save-map", metavar="PATH", help="save the final map to PATH (.npz, written atomically)")
     run.add_argument("--load-map", metavar="PATH",
                      help="localisation only: track against the map saved at PATH, which stays unchanged")
+    _viz_options(run)
     _config_options(run)
     run.set_defaults(func=cmd_run)
 
@@ -331,6 +352,7 @@ def _slam_parsers(sub) -> None:
     demo.add_argument("--no-compare", action="store_true",
                       help="skip the second run with dynamic handling off (written to OUTPUT/without_dynamic)")
     demo.add_argument("--output", "-o", help="results folder (default results/synthetic_<time>)")
+    _viz_options(demo)
     _config_options(demo)
     demo.set_defaults(func=cmd_demo)
 

@@ -31,6 +31,8 @@ Final files are written atomically. Ctrl-C stops the run after the frame being p
 result is still written (``slam.run.interrupts``); ``summary.json`` then says ``"interrupted": true``.
 Frames are checked before processing (``slam.run.input_checks``): a colour image of the wrong size is
 skipped with a warning, frames without any depth are reported.
+``FrameObserver``s (e.g. the rerun live view, ``slam.run.viz_rerun``) see every processed frame and the
+end of the run; without any the pipeline does no extra work.
 """
 from __future__ import annotations
 
@@ -39,13 +41,13 @@ import logging
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Protocol, Sequence
 
 import numpy as np
 
 from frontend.dynamic_filter import method_names
 from slam.core.config import SlamConfig
-from slam.datasets.base import RGBDDataset
+from slam.datasets.base import RGBDDataset, RGBDFrame
 from slam.run.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
 from slam.run.input_checks import InputChecks
 from slam.run.interrupts import DeferredInterrupt
@@ -84,13 +86,32 @@ class RunSummary:
         return asdict(self)
 
 
+class FrameObserver(Protocol):
+    """Watches a run without changing it (a live view, a recorder). The pipeline calls ``on_frame``
+    after each processed frame and ``on_finish`` exactly once at the end: after every result is
+    written, and also when the run stops early (Ctrl-C, an error), so an observer can close what it
+    holds open. An exception from ``on_frame`` ends the run like any other error."""
+
+    def on_frame(self, frame: RGBDFrame, output: FrameOutput, system: System) -> None:
+        """``frame`` as read, ``output`` what the System returned for it; ``system`` after the frame
+        (its ``last_frame`` features, ``last_dynamic_mask``, ``trajectory()``, map)."""
+        ...
+
+    def on_finish(self, system: System, summary: "RunSummary", report: Optional[EvaluationReport]) -> None:
+        """The run is over (``summary.interrupted`` after Ctrl-C); ``report`` is the evaluation against
+        ground truth, None without one or when the run stopped before it."""
+        ...
+
+
 class Pipeline:
     def __init__(self, dataset: RGBDDataset, config: SlamConfig, output_dir: Path | str,
                  max_frames: Optional[int] = None, progress: Optional[Callable[[FrameOutput, float], None]] = None,
-                 save_map: Optional[Path | str] = None, prior_map=None, detector=None):
+                 save_map: Optional[Path | str] = None, prior_map=None, detector=None,
+                 observers: Sequence[FrameObserver] = ()):
         """``detector``: a ``frontend.detector.Detector`` instead of the configured ONNX model (e.g.
-        ground-truth boxes of a generated sequence)."""
+        ground-truth boxes of a generated sequence). ``observers`` see every frame and the end of the run."""
         self.dataset = dataset
+        self.observers = tuple(observers)
         self.config = config
         self.output_dir = Path(output_dir)
         self.max_frames = max_frames
@@ -115,25 +136,30 @@ class Pipeline:
         # Ctrl-C only sets a flag (checked between frames), so neither a frame nor a final write is
         # cut in half and everything computed so far is written.
         with DeferredInterrupt() as interrupt:
-            self._prepare_output()
-            start = time.perf_counter()
+            failing = True
             try:
-                self._run_pipeline(interrupt)
-            except KeyboardInterrupt:   # raised by Python itself: no handler of ours outside the main thread
-                self.summary.interrupted = True
-            finally:
-                interrupt.finishing()
-                if self.summary.interrupted:
-                    log.warning("interrupted: writing the results of the %d frames processed", self.summary.frames)
-                self.summary.wall_time_s = time.perf_counter() - start
-                self.system.close()
-                self._write_result_poses()
-            self._save_map()
-            self.artifacts.finish(self.system)
-            self._write_graph()
-            self._run_evaluation()
-            self._write_summary()
-            self._write_report()
+                self._prepare_output()
+                start = time.perf_counter()
+                try:
+                    self._run_pipeline(interrupt)
+                except KeyboardInterrupt:   # raised by Python itself: no handler of ours outside the main thread
+                    self.summary.interrupted = True
+                finally:
+                    interrupt.finishing()
+                    if self.summary.interrupted:
+                        log.warning("interrupted: writing the results of the %d frames processed", self.summary.frames)
+                    self.summary.wall_time_s = time.perf_counter() - start
+                    self.system.close()
+                    self._write_result_poses()
+                self._save_map()
+                self.artifacts.finish(self.system)
+                self._write_graph()
+                self._run_evaluation()
+                self._write_summary()
+                self._write_report()
+                failing = False
+            finally:   # also after an error: observers close (and finish writing) what they hold open
+                self._finish_observers(raise_errors=not failing)
         return self.summary
 
     # --- steps ------------------------------------------------------------------------------------
@@ -161,6 +187,8 @@ class Pipeline:
                 self.artifacts.on_frame(out, frame, self.system)
                 self.dynamic_strip.observe(self.summary.frames - 1, frame.rgb, self.system.last_frame,
                                            self.system.last_dynamic_mask)
+                for observer in self.observers:
+                    observer.on_frame(frame, out, self.system)
                 if self.progress is not None:
                     self.progress(out, time.perf_counter() - t0)
 
@@ -173,6 +201,21 @@ class Pipeline:
         else:
             self.summary.tracked += 1
             online.append(out.timestamp, out.T_wc)
+
+    def _finish_observers(self, raise_errors: bool) -> None:
+        """Every observer's ``on_finish``, each once, even when one of them fails; with ``raise_errors``
+        the first failure is raised after all have run (off while the run already fails with its own
+        error, which must not be replaced)."""
+        error: Optional[BaseException] = None
+        for observer in self.observers:
+            try:
+                observer.on_finish(self.system, self.summary, self.report)
+            except Exception as exc:
+                log.warning("%s failed at the end of the run: %s", type(observer).__name__, exc)
+                error = error or exc
+        self.observers = ()   # finished: never twice
+        if error is not None and raise_errors:
+            raise error
 
     def _write_result_poses(self) -> None:
         stamps, poses, tracked = self.system.trajectory()
