@@ -147,7 +147,6 @@ def _blackout(dataset, spec: str):
 def cmd_demo(args) -> int:
     from slam.core.atomic_io import ensure_output_dir
 
-    output = ensure_output_dir(args.output or _default_output("synthetic"))
     sequence = _demo_sequence(args)
     fx, fy, cx, cy = sequence.intrinsics
     generated = {"camera.name": "synthetic", "camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
@@ -155,7 +154,8 @@ def cmd_demo(args) -> int:
                  "camera.distortion": [0.0] * 5, "seed": args.seed}
     overrides = _parse_overrides(args.set)
     config = resolve_run_config(None, args.config, overrides, generated, "demo (generated room)")
-    observers = _viz_observers(args, config, sequence)
+    observers = _viz_observers(args, config, sequence)   # refuses before anything is written
+    output = ensure_output_dir(args.output or _default_output("synthetic"))
     movers = "" if args.movers == "none" else f" with {args.movers.replace('_', ' ')}"
     print(f"dynslam demo: {args.frames} frames of a generated textured room{movers} (seed {args.seed})",
           file=sys.stderr)
