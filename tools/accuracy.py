@@ -58,18 +58,18 @@ class Case:
 
 
 CASES = {c.name: c for c in [
-    Case("rpy", RPY, ("run", "{seq}"), "fr1/rpy-400, default (dynamic handling on)", 0.0240, min_loops=3),
+    Case("rpy", RPY, ("run", "{seq}"), "fr1/rpy-400, default (dynamic handling on)", 0.0230, min_loops=3),
     Case("rpy_static", RPY, ("run", "{seq}", "-c", "static"), "fr1/rpy-400, -c static", 0.0241, min_loops=3),
     Case("rpy_loops_off", RPY, ("run", "{seq}", "--set", "loop.enabled=false"), "fr1/rpy-400, loops off"),
     Case("rpy_blackout", RPY, ("run", "{seq}", "--blackout", f"{BLACKOUT[0]}:{BLACKOUT[1]}"),
          "fr1/rpy-400, frames 185-214 blank", 0.0241),
-    Case("bonn", BONN, ("run", "{seq}"), "Bonn crowd-480, default (dynamic handling on)", 0.0129, min_loops=3),
+    Case("bonn", BONN, ("run", "{seq}"), "Bonn crowd-480, default (dynamic handling on)", 0.0124, min_loops=3),
     Case("bonn_static", BONN, ("run", "{seq}", "-c", "static"), "Bonn crowd-480, -c static"),
     Case("xyz", XYZ, ("run", "{seq}"), "fr1/xyz-37, default", 0.0055),
     Case("desk", DESK, ("run", "{seq}"), "fr1/desk, 9 frames, default", 0.0037),
     Case("demo", "", ("demo", "--movers", "none", "--no-compare"), "generated room without people (dynslam demo "
-         "--movers none), 120 frames", 0.0034),
-    Case("demo_people", "", ("demo", "--no-compare"), "generated room, 3 people walking (dynslam demo)", 0.0047),
+         "--movers none), 120 frames", 0.0035),
+    Case("demo_people", "", ("demo", "--no-compare"), "generated room, 3 people walking (dynslam demo)", 0.0048),
     Case("demo_people_off", "", ("demo", "--no-compare", "-c", "static"), "generated room, 3 people walking, "
          "-c static"),
 ]}
