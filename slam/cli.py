@@ -21,57 +21,22 @@ from slam.core.errors import EXIT_INTERRUPTED, EXIT_USAGE   # the CLI's exit cod
 # = slam.datasets.synthetic_movers.MOVER_PRESETS, then slam.datasets.synthetic_scenes.HARD_SCENES (not imported:
 # --help stays light; tests/test_cli.py checks both lists)
 DEMO_MOVERS = ("none", "boxes", "people", "crowd", "drag", "close_pass", "three_close", "stand_walk", "border")
-DEMO_ORACLE_MARGIN_PX = 8   # the generated movers' true boxes, widened as a detector's boxes are
 MODEL_NAMES = ("yolox-nano", "nanodet-m")   # = slam.core.model_files.MODELS (not imported: --help stays light)
 TRAJECTORY_FORMAT_NAMES = ("tum", "kitti", "euroc")   # = slam.core.config.TRAJECTORY_FORMATS (not imported: --help stays light)
 
 
 def _parse_overrides(pairs: Sequence[str]) -> dict:
-    import yaml
+    from slam.run.run_config import parse_overrides
 
-    from slam.core.config import ConfigError
-
-    overrides = {}
-    for pair in pairs:
-        if "=" not in pair:
-            raise ConfigError(f"--set expects key=value (e.g. tracking.match_ratio=0.8), got '{pair}'")
-        key, value = pair.split("=", 1)
-        overrides[key.strip()] = yaml.safe_load(value)
-    return overrides
+    return parse_overrides(pairs)
 
 
 def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str], overrides: dict,
                        fixed: Optional[dict] = None, fixed_source: str = "demo"):
-    """Defaults, then the camera of the dataset (a bag's CameraInfo, an image folder's intrinsics.yaml,
-    a TUM folder's camera.yaml, else a preset guessed from the name), then the user's files in order,
-    then ``fixed`` dotted values of the command (the demo's generated camera), then --set overrides:
-    merged first and validated once, an error naming the layer that set the key."""
-    from slam.core.config import CameraConfig, build_config, overrides_layer, yaml_layer
-    from slam.datasets import guess_camera, read_camera
+    """See ``slam.run.run_config.resolve_run_config`` (imported here lazily: --help stays light)."""
+    from slam.run.run_config import resolve_run_config as resolve
 
-    layers = []
-    if dataset_path is not None:
-        found = read_camera(dataset_path)
-        guessed = guess_camera(dataset_path)
-        if found:
-            intrinsics, source = found
-            known = {f"camera.{k}": v for k, v in intrinsics.items() if k in CameraConfig.model_fields}
-            layers.append(overrides_layer(known, str(source)))
-        elif guessed:
-            layers.append(yaml_layer(guessed))
-    camera_known = bool(layers) or bool(config_files)
-    layers += [yaml_layer(path) for path in config_files]
-    if fixed:
-        layers.append(overrides_layer(fixed, fixed_source))
-    if overrides:
-        layers.append(overrides_layer(overrides, "--set"))
-    config = build_config(layers)
-    if dataset_path is not None and not camera_known:
-        logging.getLogger("dynslam").warning(
-            "camera not recognised (no camera_info, intrinsics.yaml or camera.yaml, and the name "
-            "says no freiburg1/2/3 or bonn); using default intrinsics "
-            "(pass --config tum_fr1|tum_fr2|tum_fr3|bonn or your own YAML)")
-    return config
+    return resolve(dataset_path, config_files, overrides, fixed, fixed_source)
 
 
 def _default_output(name: str) -> Path:
@@ -176,29 +141,19 @@ def cmd_demo(args) -> int:
 
 
 def _demo_sequence(args):
-    from slam.datasets import SyntheticSequence
-    from slam.datasets.synthetic_scenes import HARD_SCENES, HardScene
+    from slam.run.demo import demo_sequence
 
-    if args.movers in HARD_SCENES:
-        return HardScene(args.movers, n_frames=args.frames, seed=args.seed)
-    return SyntheticSequence(n_frames=args.frames, seed=args.seed, movers=args.movers)
+    return demo_sequence(args.movers, args.frames, args.seed)
 
 
 def _demo_run(sequence, config, output: Path, args, observers):
     """One run of the demo (``observers``: the live view, for the first run only); (summary, interrupted)."""
-    from frontend.dynamic.oracle import synthetic_oracle
-    from slam.datasets.synthetic_scenes import HardScene
-    from slam.run.dynamic_eval import scene_detector
+    from slam.run.demo import demo_detector
     from slam.run.pipeline import Pipeline
 
     progress = _progress_printer(args.frames, args.quiet)
-    # YOLOX does not detect the generated people: their true boxes (widened as a detector's are) stand
-    # in, without the frames a scripted hard scene's detector misses.
-    if isinstance(sequence, HardScene):
-        detector = scene_detector(sequence, margin_px=DEMO_ORACLE_MARGIN_PX)
-    else:
-        detector = synthetic_oracle(sequence, margin_px=DEMO_ORACLE_MARGIN_PX)
-    pipeline = Pipeline(sequence, config, output, None, progress, detector=detector, observers=observers)
+    pipeline = Pipeline(sequence, config, output, None, progress, detector=demo_detector(sequence),
+                        observers=observers)
     summary = pipeline.run()
     progress.finish()
     print(pipeline.format_summary())
@@ -224,32 +179,12 @@ def cmd_export_trajectory(args) -> int:
 
 def cmd_vocabulary(args) -> int:
     """Train a bag-of-binary-words vocabulary on the ORB features of a user's images."""
-    import cv2
-    import numpy as np
+    from slam.run.vocabulary_training import train_vocabulary
 
-    from backend.place_recognition import Vocabulary
-    from frontend.orb_extractor import OrbExtractor
-    from slam.core.camera import PinholeCamera
-    from slam.core.config import SlamConfig
-    from slam.datasets import DatasetError
-
-    paths = sorted(p for folder in args.images for p in Path(folder).rglob("*")
-                   if p.suffix.lower() in (".png", ".jpg", ".jpeg"))[:: args.step]
-    if not paths:
-        raise DatasetError(f"no PNG/JPEG images found under {', '.join(args.images)}")
-    config = SlamConfig()
-    extractor = OrbExtractor(config.orb, PinholeCamera.from_config(config.camera))
-    descriptors = []
-    for path in paths:
-        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if gray is None:
-            print(f"dynslam vocabulary: skipping unreadable {path}", file=sys.stderr)
-            continue
-        descriptors.append(extractor.extract(gray, np.zeros(gray.shape, np.float32)).descriptors)
-    vocabulary = Vocabulary.train(descriptors, k=args.branches, levels=args.levels, seed=args.seed)
+    vocabulary, n_descriptors, n_images = train_vocabulary(args.images, args.step, args.branches, args.levels,
+                                                           args.seed)
     vocabulary.save(args.output)
-    print(f"{args.output}: {vocabulary.n_words} words from {sum(map(len, descriptors))} descriptors "
-          f"of {len(descriptors)} images")
+    print(f"{args.output}: {vocabulary.n_words} words from {n_descriptors} descriptors of {n_images} images")
     return 0
 
 

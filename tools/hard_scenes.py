@@ -18,9 +18,9 @@ import yaml
 
 from slam.datasets import SyntheticSequence
 from slam.datasets.synthetic_scenes import HARD_SCENES, HardScene
+from slam.run.demo import DEMO_ORACLE_MARGIN_PX
 from slam.run.dynamic_eval import evaluate_synthetic, scene_detector, synthetic_config
 
-ORACLE_MARGIN_PX = 8   # = slam.cli.DEMO_ORACLE_MARGIN_PX: true boxes widened as a detector's are
 
 
 def _overrides(items: list[str], parser: argparse.ArgumentParser) -> dict:
@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     for name in args.scenes:
         scene = HardScene(name, n_frames=args.frames, seed=args.seed)
         result = evaluate_synthetic(scene, synthetic_config(scene, preset=args.preset, **overrides),
-                                    detector=scene_detector(scene, ORACLE_MARGIN_PX))
+                                    detector=scene_detector(scene, DEMO_ORACLE_MARGIN_PX))
         cls, fused = result.classification, result.keyframe_masks.get("fused")
         mask_pr = f"{fused.precision:.2f} / {fused.recall:.2f}" if fused else "-"
         rows.append(f"| {name} | {scene.coverage.max():.2f} | {len(scene.detector_misses)} "

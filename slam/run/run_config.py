@@ -1,0 +1,56 @@
+"""The config of one run: defaults, the dataset's camera, the user's files, the command's own values and
+``--set`` overrides, merged as layers and validated once (used by the CLI and the tools)."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Optional, Sequence
+
+
+def parse_overrides(pairs: Sequence[str]) -> dict:
+    """``--set key=value`` pairs as a dict of dotted keys to YAML-parsed values."""
+    import yaml
+
+    from slam.core.config import ConfigError
+
+    overrides = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise ConfigError(f"--set expects key=value (e.g. tracking.match_ratio=0.8), got '{pair}'")
+        key, value = pair.split("=", 1)
+        overrides[key.strip()] = yaml.safe_load(value)
+    return overrides
+
+
+def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str], overrides: dict,
+                       fixed: Optional[dict] = None, fixed_source: str = "demo"):
+    """Defaults, then the camera of the dataset (a bag's CameraInfo, an image folder's intrinsics.yaml,
+    a TUM folder's camera.yaml, else a preset guessed from the name), then the user's files in order,
+    then ``fixed`` dotted values of the command (the demo's generated camera), then --set overrides:
+    merged first and validated once, an error naming the layer that set the key."""
+    from slam.core.config import CameraConfig, build_config, overrides_layer, yaml_layer
+    from slam.datasets import guess_camera, read_camera
+
+    layers = []
+    if dataset_path is not None:
+        found = read_camera(dataset_path)
+        guessed = guess_camera(dataset_path)
+        if found:
+            intrinsics, source = found
+            known = {f"camera.{k}": v for k, v in intrinsics.items() if k in CameraConfig.model_fields}
+            layers.append(overrides_layer(known, str(source)))
+        elif guessed:
+            layers.append(yaml_layer(guessed))
+    camera_known = bool(layers) or bool(config_files)
+    layers += [yaml_layer(path) for path in config_files]
+    if fixed:
+        layers.append(overrides_layer(fixed, fixed_source))
+    if overrides:
+        layers.append(overrides_layer(overrides, "--set"))
+    config = build_config(layers)
+    if dataset_path is not None and not camera_known:
+        logging.getLogger("dynslam").warning(
+            "camera not recognised (no camera_info, intrinsics.yaml or camera.yaml, and the name "
+            "says no freiburg1/2/3 or bonn); using default intrinsics "
+            "(pass --config tum_fr1|tum_fr2|tum_fr3|bonn or your own YAML)")
+    return config
