@@ -222,7 +222,7 @@ def inject_drift(monkeypatch) -> None:
 def drift_room_config(loop: bool):
     seq = SyntheticSequence(n_frames=2)
     fx, fy, cx, cy = seq.intrinsics
-    return load_config(overrides={"camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
+    return load_config("static", overrides={"camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
                                   "camera.width": seq.width, "camera.height": seq.height,
                                   "camera.distortion": [0.0] * 5, "loop.enabled": loop})
 

@@ -45,7 +45,7 @@ def _rot_deg(R: np.ndarray) -> float:
 def run():
     seq = SyntheticSequence(n_frames=2)
     # Loop closing off: these tests run the detector alone over the uncorrected map.
-    system = System(load_config(overrides={"loop.enabled": False}))
+    system = System(load_config("static", overrides={"loop.enabled": False}))
     gt = {}
     for i in range(PERIOD + EXTRA):
         T = _pose(i)

@@ -25,7 +25,7 @@ def kidnapped():
     seq = SyntheticSequence(n_frames=MAPPED)
     frames = list(seq)
     _, gt = seq.groundtruth()
-    system = System(load_config())
+    system = System(load_config("static"))
     outputs = [system.process(f.rgb, f.depth, f.timestamp, f.index) for f in frames]
     keyframes_before = system.num_keyframes
     blank_rgb, blank_depth = np.zeros_like(frames[0].rgb), np.zeros_like(frames[0].depth)
@@ -99,7 +99,7 @@ def test_localization_run_relocalizes_through_the_saved_index(kidnapped, tmp_pat
     system.save_map(path)
     loaded = load_map(path)
     seq = SyntheticSequence(n_frames=40)
-    localizer = System(load_config(), prior_map=loaded.slam_map, localization_only=True,
+    localizer = System(load_config("static"), prior_map=loaded.slam_map, localization_only=True,
                        vocabulary=loaded.places.vocabulary, prior_words=loaded.places.bows)
     assert len(localizer.loop_closer.index) == loaded.slam_map.num_keyframes
     _, gt = seq.groundtruth()

@@ -162,7 +162,7 @@ def test_bonn_ablation_sweep_file_defines_the_readme_ablation():
     assert spec.sequences == [str((repo.parent / "shared" / "data" / "rgbd_bonn_crowd_first480").resolve())]
     assert spec.presets == ["bonn"] and spec.repeats == 3 and spec.baseline == "off"
     assert {c.label: c.presets for c in spec.configs} == {
-        "off": (), "dynamic_box_prior": ("dynamic_box_prior",), "dynamic_cpr": ("dynamic_cpr",),
+        "off": ("static",), "dynamic_box_prior": ("dynamic_box_prior",), "dynamic_cpr": ("dynamic_cpr",),
         "dynamic_box_depth": ("dynamic_box_depth",), "dynamic_flow_epipolar": ("dynamic_flow_epipolar",),
         "dynamic_depth_sdf": ("dynamic_depth_sdf",), "dynamic_all": ("dynamic_all",)}
     from slam.core.config import SlamConfig, apply_yaml

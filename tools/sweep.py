@@ -91,8 +91,8 @@ def config_from_entry(label: str, value: Any) -> ConfigSpec:
 
 def config_from_name(name: str) -> ConfigSpec:
     """A --configs item: a preset name or YAML file (labelled by its stem), or none/off."""
-    if name in NONE_CONFIGS:
-        return ConfigSpec(name)
+    if name in NONE_CONFIGS:   # dynamic handling is on by default: "off" is the static preset
+        return ConfigSpec(name, ("static",))
     return ConfigSpec(Path(name).stem if name.endswith((".yaml", ".yml")) else name, (name,))
 
 
