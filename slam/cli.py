@@ -8,6 +8,7 @@ or file, 1 for a failure while running); Ctrl-C gives 130.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
@@ -37,15 +38,20 @@ def _parse_overrides(pairs: Sequence[str]) -> dict:
     return overrides
 
 
-def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str], overrides: dict):
+def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str], overrides: dict,
+                       camera: Optional[dict] = None):
     """Defaults, then the camera of the dataset (a bag's CameraInfo, an image folder's intrinsics.yaml,
-    a TUM folder's camera.yaml, else a preset guessed from the name), then the user's files in order,
-    then --set overrides."""
+    a TUM folder's camera.yaml, else a preset guessed from the name; ``camera``: the keys a live camera
+    reported), then the user's files in order, then --set overrides."""
     from slam.core.config import SlamConfig, apply_overrides, apply_yaml
     from slam.datasets import guess_camera, read_camera
 
     config = SlamConfig()
     camera_known = False
+    if camera is not None:
+        apply_overrides(config, {f"camera.{k}": v for k, v in camera.items() if hasattr(config.camera, k)},
+                        "the camera")
+        camera_known = True
     if dataset_path is not None:
         found = read_camera(dataset_path)
         guessed = guess_camera(dataset_path)
@@ -83,39 +89,83 @@ def _progress_printer(total: int, quiet: bool):
 
 def cmd_run(args) -> int:
     from slam.core.atomic_io import ensure_output_dir
-    from slam.datasets import DatasetError, is_rosbag, open_dataset
+    from slam.datasets.realsense_live import is_live_source
     from slam.run.pipeline import Pipeline
 
+    dataset, config = (_open_live if is_live_source(args.dataset) else _open_recorded)(args)
+    with contextlib.ExitStack() as stack:
+        if hasattr(dataset, "close"):   # a live camera: stopped on every way out (Ctrl-C, errors)
+            stack.callback(dataset.close)
+        if args.blackout:
+            dataset = _blackout(dataset, args.blackout)
+        output = ensure_output_dir(args.output or _default_output(dataset.name))
+        total = _frames_to_run(dataset, args.max_frames)
+        prior_map = None
+        if args.load_map:
+            from backend.map_io import check_camera_compatible, load_map
+
+            prior_map = load_map(args.load_map)
+            check_camera_compatible(prior_map.camera_info, config.camera, args.load_map)
+        if args.save_map and not Path(args.save_map).parent.is_dir():
+            raise FileNotFoundError(f"--save-map: folder {Path(args.save_map).parent} does not exist")
+        progress = _progress_printer(total, args.quiet)
+        pipeline = Pipeline(dataset, config, output, args.max_frames, progress,
+                            save_map=args.save_map, prior_map=prior_map)
+        summary = pipeline.run()
+        progress.finish()
+    print(pipeline.format_summary())
+    return EXIT_INTERRUPTED if summary.interrupted else 0
+
+
+def _frames_to_run(dataset, max_frames: Optional[int]) -> Optional[int]:
+    """The run's length for the progress bar: None for a live camera without --max-frames."""
+    try:
+        total = len(dataset)
+    except TypeError:   # a live camera has no length
+        return max_frames
+    return min(total, max_frames or total)
+
+
+def _open_recorded(args):
+    """(dataset, config) of a folder or bag on disk."""
+    from slam.datasets import DatasetError, is_rosbag, open_dataset
+
     root = Path(args.dataset)
-    expected = ("a TUM RGB-D folder with rgb.txt, depth.txt, rgb/ and depth/; a ROS .bag file or ROS 2 bag "
-                "folder; or a folder with color/, depth/ and intrinsics.yaml")
+    expected = ("a TUM RGB-D folder with rgb.txt, depth.txt, rgb/ and depth/; a ROS .bag file (RealSense "
+                "Viewer recordings too) or ROS 2 bag folder; a folder with color/, depth/ and intrinsics.yaml; "
+                "or 'realsense' for a live camera")
     if not root.exists():
         raise DatasetError(f"dataset {root} does not exist (expected {expected})")
     if not root.is_dir() and not is_rosbag(root):
         raise DatasetError(f"{root} is not a dataset (expected {expected})")
     config = resolve_run_config(root, args.config, _parse_overrides(args.set))
-    if args.output:   # an unwritable results folder fails now, not after the whole run
-        ensure_output_dir(args.output)
-    dataset = open_dataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
-    if args.blackout:
-        dataset = _blackout(dataset, args.blackout)
-    output = ensure_output_dir(args.output or _default_output(dataset.name))
-    total = min(len(dataset), args.max_frames or len(dataset))
-    prior_map = None
-    if args.load_map:
-        from backend.map_io import check_camera_compatible, load_map
+    _check_output(args)
+    return open_dataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt), config
 
-        prior_map = load_map(args.load_map)
-        check_camera_compatible(prior_map.camera_info, config.camera, args.load_map)
-    if args.save_map and not Path(args.save_map).parent.is_dir():
-        raise FileNotFoundError(f"--save-map: folder {Path(args.save_map).parent} does not exist")
-    progress = _progress_printer(total, args.quiet)
-    pipeline = Pipeline(dataset, config, output, args.max_frames, progress,
-                        save_map=args.save_map, prior_map=prior_map)
-    summary = pipeline.run()
-    progress.finish()
-    print(pipeline.format_summary())
-    return EXIT_INTERRUPTED if summary.interrupted else 0
+
+def _check_output(args) -> None:
+    """An unwritable results folder fails now, not after the whole run (or after starting a camera)."""
+    from slam.core.atomic_io import ensure_output_dir
+
+    if args.output:
+        ensure_output_dir(args.output)
+
+
+def _open_live(args):
+    """(camera, config) of ``realsense[:SERIAL]``: the streams are requested at the configured
+    camera.width x camera.height and camera.fps (640x480 at 30 by default); the intrinsics come from
+    the device."""
+    from slam.datasets.realsense_live import RealSenseCamera, parse_serial
+
+    overrides = _parse_overrides(args.set)
+    wanted = resolve_run_config(None, args.config, overrides).camera
+    _check_output(args)
+    camera = RealSenseCamera(parse_serial(args.dataset), wanted.width, wanted.height, int(round(wanted.fps)))
+    try:
+        return camera, resolve_run_config(None, args.config, overrides, camera=camera.intrinsics())
+    except BaseException:
+        camera.close()
+        raise
 
 
 def _blackout(dataset, spec: str):
@@ -252,9 +302,12 @@ def _config_options(p) -> None:
 
 def _slam_parsers(sub) -> None:
     """run and demo: the commands that run SLAM."""
-    run = _command(sub, "run", help="run SLAM on a TUM/Bonn folder, a ROS 1/2 bag or an image folder")
-    run.add_argument("dataset", help="TUM/Bonn folder (rgb.txt, depth.txt), ROS bag (.bag file or ROS 2 bag "
-                                     "folder), or a folder with color/, depth/ and intrinsics.yaml")
+    run = _command(sub, "run", help="run SLAM on a TUM/Bonn folder, a ROS 1/2 bag, an image folder or a "
+                                    "live RealSense camera")
+    run.add_argument("dataset", help="TUM/Bonn folder (rgb.txt, depth.txt), ROS bag (.bag file, RealSense "
+                                     "Viewer recordings too, or ROS 2 bag folder), a folder with color/, "
+                                     "depth/ and intrinsics.yaml, or realsense[:SERIAL] for a live camera "
+                                     "(needs pip install \"dynslam[realsense]\"; Ctrl-C stops it)")
     run.add_argument("--output", "-o", help="results folder (default results/<name>_<time>)")
     run.add_argument("--max-frames", type=int, help="stop after this many frames")
     run.add_argument("--blackout", metavar="START:COUNT",
