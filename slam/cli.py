@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from slam.core.errors import EXIT_INTERRUPTED, EXIT_USAGE   # the CLI's exit codes (light: --help stays instant)
+from slam.run.sources import resolve_run_config  # noqa: F401  (re-exported; light: imports lazily)
 
 DEMO_MOVERS = ("none", "people", "boxes", "crowd", "drag")   # = slam.datasets.synthetic_movers.MOVER_PRESETS
 DEMO_ORACLE_MARGIN_PX = 8   # the generated movers' true boxes, widened as a detector's boxes are
@@ -38,44 +39,6 @@ def _parse_overrides(pairs: Sequence[str]) -> dict:
     return overrides
 
 
-def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str], overrides: dict,
-                       camera: Optional[dict] = None):
-    """Defaults, then the camera of the dataset (a bag's CameraInfo, an image folder's intrinsics.yaml,
-    a TUM folder's camera.yaml, else a preset guessed from the name; ``camera``: the keys a live camera
-    reported), then the user's files in order, then --set overrides."""
-    from slam.core.config import SlamConfig, apply_overrides, apply_yaml
-    from slam.datasets import guess_camera, read_camera
-
-    config = SlamConfig()
-    camera_known = False
-    if camera is not None:
-        apply_overrides(config, {f"camera.{k}": v for k, v in camera.items() if hasattr(config.camera, k)},
-                        "the camera")
-        camera_known = True
-    if dataset_path is not None:
-        found = read_camera(dataset_path)
-        guessed = guess_camera(dataset_path)
-        if found:
-            intrinsics, source = found
-            known = {f"camera.{k}": v for k, v in intrinsics.items() if hasattr(config.camera, k)}
-            apply_overrides(config, known, str(source))
-            camera_known = True
-        elif guessed:
-            apply_yaml(config, guessed)
-            camera_known = True
-    for path in config_files:
-        apply_yaml(config, path)
-        camera_known = True
-    if overrides:
-        apply_overrides(config, overrides, "--set")
-    if dataset_path is not None and not camera_known:
-        logging.getLogger("dynslam").warning(
-            "camera not recognised (no camera_info, intrinsics.yaml or camera.yaml, and the name "
-            "says no freiburg1/2/3 or bonn); using default intrinsics "
-            "(pass --config tum_fr1|tum_fr2|tum_fr3|bonn or your own YAML)")
-    return config
-
-
 def _default_output(name: str) -> Path:
     return Path("results") / f"{name}_{time.strftime('%Y%m%d_%H%M%S')}"
 
@@ -91,15 +54,18 @@ def cmd_run(args) -> int:
     from slam.core.atomic_io import ensure_output_dir
     from slam.datasets.realsense_live import is_live_source
     from slam.run.pipeline import Pipeline
+    from slam.run.sources import frames_to_run, open_live, open_recorded
 
-    dataset, config = (_open_live if is_live_source(args.dataset) else _open_recorded)(args)
+    overrides = _parse_overrides(args.set)
+    opener = open_live if is_live_source(args.dataset) else open_recorded
+    dataset, config = opener(args.dataset, args.config, overrides, args.output)
     with contextlib.ExitStack() as stack:
         if hasattr(dataset, "close"):   # a live camera: stopped on every way out (Ctrl-C, errors)
             stack.callback(dataset.close)
         if args.blackout:
             dataset = _blackout(dataset, args.blackout)
         output = ensure_output_dir(args.output or _default_output(dataset.name))
-        total = _frames_to_run(dataset, args.max_frames)
+        total = frames_to_run(dataset, args.max_frames)
         prior_map = None
         if args.load_map:
             from backend.map_io import check_camera_compatible, load_map
@@ -115,57 +81,6 @@ def cmd_run(args) -> int:
         progress.finish()
     print(pipeline.format_summary())
     return EXIT_INTERRUPTED if summary.interrupted else 0
-
-
-def _frames_to_run(dataset, max_frames: Optional[int]) -> Optional[int]:
-    """The run's length for the progress bar: None for a live camera without --max-frames."""
-    try:
-        total = len(dataset)
-    except TypeError:   # a live camera has no length
-        return max_frames
-    return min(total, max_frames or total)
-
-
-def _open_recorded(args):
-    """(dataset, config) of a folder or bag on disk."""
-    from slam.datasets import DatasetError, is_rosbag, open_dataset
-
-    root = Path(args.dataset)
-    expected = ("a TUM RGB-D folder with rgb.txt, depth.txt, rgb/ and depth/; a ROS .bag file (RealSense "
-                "Viewer recordings too) or ROS 2 bag folder; a folder with color/, depth/ and intrinsics.yaml; "
-                "or 'realsense' for a live camera")
-    if not root.exists():
-        raise DatasetError(f"dataset {root} does not exist (expected {expected})")
-    if not root.is_dir() and not is_rosbag(root):
-        raise DatasetError(f"{root} is not a dataset (expected {expected})")
-    config = resolve_run_config(root, args.config, _parse_overrides(args.set))
-    _check_output(args)
-    return open_dataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt), config
-
-
-def _check_output(args) -> None:
-    """An unwritable results folder fails now, not after the whole run (or after starting a camera)."""
-    from slam.core.atomic_io import ensure_output_dir
-
-    if args.output:
-        ensure_output_dir(args.output)
-
-
-def _open_live(args):
-    """(camera, config) of ``realsense[:SERIAL]``: the streams are requested at the configured
-    camera.width x camera.height and camera.fps (640x480 at 30 by default); the intrinsics come from
-    the device."""
-    from slam.datasets.realsense_live import RealSenseCamera, parse_serial
-
-    overrides = _parse_overrides(args.set)
-    wanted = resolve_run_config(None, args.config, overrides).camera
-    _check_output(args)
-    camera = RealSenseCamera(parse_serial(args.dataset), wanted.width, wanted.height, int(round(wanted.fps)))
-    try:
-        return camera, resolve_run_config(None, args.config, overrides, camera=camera.intrinsics())
-    except BaseException:
-        camera.close()
-        raise
 
 
 def _blackout(dataset, spec: str):
