@@ -348,7 +348,7 @@ def _rs_camera_info(types, header, camera: tuple, model: str, coeffs=(0.0,) * 5)
 def write_realsense_bag(path: Path, seq: SyntheticSequence, depth_camera: Optional[tuple] = None,
                         T_colour_depth: Optional[np.ndarray] = None, depth_units: Optional[float] = 0.001,
                         extrinsics: bool = True, depth_info: bool = True, depth_stream: bool = True,
-                        colour_coeffs=(0.0,) * 5) -> Path:
+                        colour_coeffs=(0.0,) * 5, colour_model: str = "Inverse Brown Conrady") -> Path:
     """``seq`` as a librealsense bag: colour from ``seq``, depth (Z16 in ``depth_units``, None: no units
     topic, written as 0.001) rendered from ``depth_camera`` (default: a wider view, 6/7 of the colour focal length, other
     principal point, 15 mm baseline); ``extrinsics``/``depth_info``/``depth_stream`` False leave those out."""
@@ -394,7 +394,7 @@ def write_realsense_bag(path: Path, seq: SyntheticSequence, depth_camera: Option
 
         put("/file_version", types["std_msgs/msg/UInt32"](data=3), 0.0)
         put(f"{RS_COLOUR}/info/camera_info", _rs_camera_info(types, header(0.0), colour_camera,
-                                                             "Inverse Brown Conrady", colour_coeffs), 0.0)
+                                                             colour_model, colour_coeffs), 0.0)
         put(f"{RS_DEPTH}/info/camera_info", _rs_camera_info(types, header(0.0), depth_camera, "Brown Conrady"), 0.0)
         put(f"{RS_COLOUR}/tf/0", transform(T), 0.0)          # reference: the depth stream
         put(f"{RS_DEPTH}/tf/0", transform(np.eye(4)), 0.0)

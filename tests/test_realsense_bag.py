@@ -108,6 +108,16 @@ def test_incomplete_bag_is_a_clear_error(tmp_path, seq, what, kwargs, message):
     assert str(path) in str(info.value), f"a bag without {what} must be named"
 
 
+def test_colour_distortion_is_read_as_opencvs_model(tmp_path):
+    seq = SyntheticSequence(n_frames=1, width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5)
+    coeffs = (0.11, -0.23, 0.001, -0.002, 0.04)
+    ds = RealSenseBagDataset(write_realsense_bag(tmp_path / "d455.bag", seq, colour_coeffs=coeffs))
+    assert ds.intrinsics()["distortion"] == list(coeffs) and ds.registration.colour.distortion == coeffs
+    path = write_realsense_bag(tmp_path / "fisheye.bag", seq, colour_coeffs=coeffs, colour_model="Kannala Brandt4")
+    with pytest.raises(DatasetError, match="distortion model 'Kannala Brandt4' .* is not supported"):
+        RealSenseBagDataset(path)
+
+
 def test_bad_depth_units_are_a_clear_error(tmp_path, seq):
     path = write_realsense_bag(tmp_path / "units.bag", seq, depth_units=0.0)
     with pytest.raises(DatasetError, match=rf"'{RS_UNITS_TOPIC}' says 0.0 m per depth unit"):

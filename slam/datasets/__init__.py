@@ -29,8 +29,8 @@ def open_dataset(path_or_name: Union[str, Path], **kwargs) -> AnyDataset:
     "synthetic" gives the default SyntheticSequence (write "./synthetic" for a folder of that name); a
     ``.bag`` recorded by librealsense (RealSense Viewer) gives a RealSenseBagDataset (depth registered to
     colour; only ``max_dt`` is used), any other ``.bag`` file or a ROS 2 bag folder a RosbagDataset
-    (``depth_scale`` is dropped: a bag's encoding or depth-units topic fixes its units); a folder with intrinsics.yaml an ImageFolderDataset; anything else
-    is opened as a TUM-layout folder.
+    (``depth_scale`` is dropped: a bag's encoding or depth-units topic fixes its units); a folder with
+    intrinsics.yaml an ImageFolderDataset; anything else is opened as a TUM-layout folder.
     """
     if isinstance(path_or_name, str) and path_or_name == "synthetic":
         return SyntheticSequence(**kwargs)
@@ -47,7 +47,8 @@ def open_dataset(path_or_name: Union[str, Path], **kwargs) -> AnyDataset:
 def read_camera(path: Union[str, Path]) -> Optional[tuple[dict, Path]]:
     """(camera keys, where they came from) for a dataset path, or None when it names no camera.
 
-    Bags: their CameraInfo topic (RealSense bags: the colour stream's); image folders: intrinsics.yaml; TUM folders: an optional camera.yaml.
+    Bags: their CameraInfo topic (RealSense bags: the colour stream's); image folders: intrinsics.yaml;
+    TUM folders: an optional camera.yaml.
     """
     path = Path(path)
     if is_realsense_bag(path):

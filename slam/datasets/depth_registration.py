@@ -134,6 +134,7 @@ class DepthRegistration:
             for dc in range(span_c):
                 col, row = c0 + dc, r0 + dr
                 hit = (dc < nc) & (dr < nr) & (col >= 0) & (col < c.width) & (row >= 0) & (row < c.height)
-                np.minimum.at(out, row[hit].astype(np.int64) * c.width + col[hit], z_colour[hit])   # the z-buffer: nearest wins
+                flat = row[hit].astype(np.int64) * c.width + col[hit]
+                np.minimum.at(out, flat, z_colour[hit])   # the z-buffer: the nearest surface wins
         out[np.isinf(out)] = 0.0
         return out.reshape(c.height, c.width)

@@ -231,14 +231,10 @@ class RealSenseBagDataset(RosbagDataset):
 
     def _check_encodings(self, encodings: dict, colour_topic: str, depth_topic: str) -> None:
         colour_ok = (*COLOUR_ENCODINGS, *YUV_ENCODINGS, *GREY_ENCODINGS)
-        if encodings[colour_topic] not in colour_ok:
-            raise DatasetError(f"{self.root}: colour topic '{colour_topic}' has "
-                               + ("no message" if encodings[colour_topic] is None else
-                                  f"unsupported encoding '{encodings[colour_topic]}'") + f" (supported: {', '.join(colour_ok)})")
-        if encodings[depth_topic] not in DEPTH_RAW_ENCODINGS:
-            raise DatasetError(f"{self.root}: depth topic '{depth_topic}' has "
-                               + ("no message" if encodings[depth_topic] is None else
-                                  f"unsupported encoding '{encodings[depth_topic]}'") + " (expected Z16: mono16 or 16UC1)")
+        for topic, supported, role in ((colour_topic, colour_ok, "colour"), (depth_topic, DEPTH_RAW_ENCODINGS, "depth")):
+            if encodings[topic] not in supported:
+                found = "no message" if encodings[topic] is None else f"unsupported encoding '{encodings[topic]}'"
+                raise DatasetError(f"{self.root}: {role} topic '{topic}' has {found} (supported: {', '.join(supported)})")
 
     def _colour(self, msg) -> np.ndarray:
         if msg.encoding in YUV_ENCODINGS:
