@@ -8,6 +8,7 @@ or file, 1 for a failure while running); Ctrl-C gives 130.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
@@ -17,6 +18,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from slam.core.errors import EXIT_INTERRUPTED, EXIT_USAGE   # the CLI's exit codes (light: --help stays instant)
+from slam.run.sources import resolve_run_config  # noqa: F401  (re-exported; light: imports lazily)
 
 # = slam.datasets.synthetic_movers.MOVER_PRESETS, then slam.datasets.synthetic_scenes.HARD_SCENES (not imported:
 # --help stays light; tests/test_cli.py checks both lists)
@@ -62,38 +64,34 @@ def _viz_observers(args, config, dataset) -> list:
 
 def cmd_run(args) -> int:
     from slam.core.atomic_io import ensure_output_dir
-    from slam.datasets import DatasetError, is_rosbag, open_dataset
+    from slam.datasets.realsense_live import is_live_source
     from slam.run.pipeline import Pipeline
+    from slam.run.sources import frames_to_run, open_live, open_recorded
 
-    root = Path(args.dataset)
-    expected = ("a TUM RGB-D folder with rgb.txt, depth.txt, rgb/ and depth/; a ROS .bag file or ROS 2 bag "
-                "folder; or a folder with color/, depth/ and intrinsics.yaml")
-    if not root.exists():
-        raise DatasetError(f"dataset {root} does not exist (expected {expected})")
-    if not root.is_dir() and not is_rosbag(root):
-        raise DatasetError(f"{root} is not a dataset (expected {expected})")
-    config = resolve_run_config(root, args.config, _parse_overrides(args.set))
-    if args.output:   # an unwritable results folder fails now, not after the whole run
-        ensure_output_dir(args.output)
-    dataset = open_dataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
-    if args.blackout:
-        dataset = _blackout(dataset, args.blackout)
-    output = ensure_output_dir(args.output or _default_output(dataset.name))
-    total = min(len(dataset), args.max_frames or len(dataset))
-    prior_map = None
-    if args.load_map:
-        from backend.map_io import check_camera_compatible, load_map
+    overrides = _parse_overrides(args.set)
+    opener = open_live if is_live_source(args.dataset) else open_recorded
+    dataset, config = opener(args.dataset, args.config, overrides, args.output)
+    with contextlib.ExitStack() as stack:
+        if hasattr(dataset, "close"):   # a live camera: stopped on every way out (Ctrl-C, errors)
+            stack.callback(dataset.close)
+        if args.blackout:
+            dataset = _blackout(dataset, args.blackout)
+        output = ensure_output_dir(args.output or _default_output(dataset.name))
+        total = frames_to_run(dataset, args.max_frames)
+        prior_map = None
+        if args.load_map:
+            from backend.map_io import check_camera_compatible, load_map
 
-        prior_map = load_map(args.load_map)
-        check_camera_compatible(prior_map.camera_info, config.camera, args.load_map)
-    if args.save_map and not Path(args.save_map).parent.is_dir():
-        raise FileNotFoundError(f"--save-map: folder {Path(args.save_map).parent} does not exist")
-    observers = _viz_observers(args, config, dataset)
-    progress = _progress_printer(total, args.quiet)
-    pipeline = Pipeline(dataset, config, output, args.max_frames, progress,
-                        save_map=args.save_map, prior_map=prior_map, observers=observers)
-    summary = pipeline.run()
-    progress.finish()
+            prior_map = load_map(args.load_map)
+            check_camera_compatible(prior_map.camera_info, config.camera, args.load_map)
+        if args.save_map and not Path(args.save_map).parent.is_dir():
+            raise FileNotFoundError(f"--save-map: folder {Path(args.save_map).parent} does not exist")
+        observers = _viz_observers(args, config, dataset)
+        progress = _progress_printer(total, args.quiet)
+        pipeline = Pipeline(dataset, config, output, args.max_frames, progress,
+                            save_map=args.save_map, prior_map=prior_map, observers=observers)
+        summary = pipeline.run()
+        progress.finish()
     print(pipeline.format_summary())
     return EXIT_INTERRUPTED if summary.interrupted else 0
 
@@ -263,9 +261,12 @@ def _viz_options(p) -> None:
 
 def _slam_parsers(sub) -> None:
     """run and demo: the commands that run SLAM."""
-    run = _command(sub, "run", help="run SLAM on a TUM/Bonn folder, a ROS 1/2 bag or an image folder")
-    run.add_argument("dataset", help="TUM/Bonn folder (rgb.txt, depth.txt), ROS bag (.bag file or ROS 2 bag "
-                                     "folder), or a folder with color/, depth/ and intrinsics.yaml")
+    run = _command(sub, "run", help="run SLAM on a TUM/Bonn folder, a ROS 1/2 bag, an image folder or a "
+                                    "live RealSense camera")
+    run.add_argument("dataset", help="TUM/Bonn folder (rgb.txt, depth.txt), ROS bag (.bag file, RealSense "
+                                     "Viewer recordings too, or ROS 2 bag folder), a folder with color/, "
+                                     "depth/ and intrinsics.yaml, or realsense[:SERIAL] for a live camera "
+                                     "(needs pip install \"dynslam[realsense]\"; Ctrl-C stops it)")
     run.add_argument("--output", "-o", help="results folder (default results/<name>_<time>)")
     run.add_argument("--max-frames", type=int, help="stop after this many frames")
     run.add_argument("--blackout", metavar="START:COUNT",

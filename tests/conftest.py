@@ -366,3 +366,110 @@ def server():
     yield httpd
     httpd.shutdown()
     httpd.server_close()
+
+
+
+
+# ------------------------------------------------------ RealSense (librealsense) bags written here
+# The layout the RealSense Viewer records (slam.datasets.realsense_bag): depth from its own camera beside
+# the colour one, extrinsics relative to the depth stream (the group's reference), depth units as an option.
+RS_COLOUR = "/device_0/sensor_1/Color_0"
+RS_DEPTH = "/device_0/sensor_0/Depth_0"
+RS_UNITS_TOPIC = "/device_0/sensor_0/option/Depth_Units/value"
+RS_DEPTH_DELAY_S = 0.002   # depth stamped 2 ms after colour, as a hardware-synchronised pair is
+
+
+def rs_extrinsic(baseline_m: float = 0.015, yaw_deg: float = 0.5) -> np.ndarray:
+    """T_colour_depth of a D400-like rig: the colour camera ``baseline_m`` to the right, slightly turned."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix()
+    T[:3, 3] = [baseline_m, 0.0, 0.0]
+    return T
+
+
+def render_depth_camera(seq: SyntheticSequence, index: int, depth_camera: tuple, T_colour_depth: np.ndarray,
+                        cache: dict) -> np.ndarray:
+    """The exact depth image that a camera of intrinsics ``depth_camera`` (fx, fy, cx, cy, w, h), rigidly
+    mounted at ``T_colour_depth`` from ``seq``'s camera, sees at frame ``index`` (same room, same path)."""
+    fx, fy, cx, cy, w, h = depth_camera
+    key = (depth_camera, seq.seed)
+    if key not in cache:
+        cache[key] = SyntheticSequence(n_frames=seq.n_frames, width=w, height=h, fx=fx, fy=fy, cx=cx, cy=cy,
+                                       seed=seq.seed, fps=seq.fps)
+    t = float(seq.timestamps[index])
+    return cache[key].raycast(seq.pose(t) @ T_colour_depth, t)[0]
+
+
+def _rs_camera_info(types, header, camera: tuple, model: str, coeffs=(0.0,) * 5):
+    fx, fy, cx, cy, w, h = camera
+    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return types["sensor_msgs/msg/CameraInfo"](
+        header=header, height=h, width=w, distortion_model=model, D=np.asarray(coeffs, np.float64),
+        K=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], np.float64), R=np.zeros(9), P=np.zeros(12),
+        binning_x=0, binning_y=0, roi=roi)
+
+
+def write_realsense_bag(path: Path, seq: SyntheticSequence, depth_camera: Optional[tuple] = None,
+                        T_colour_depth: Optional[np.ndarray] = None, depth_units: Optional[float] = 0.001,
+                        extrinsics: bool = True, depth_info: bool = True, depth_stream: bool = True,
+                        colour_coeffs=(0.0,) * 5, colour_model: str = "Inverse Brown Conrady") -> Path:
+    """``seq`` as a librealsense bag: colour from ``seq``, depth (Z16 in ``depth_units``, None: no units
+    topic, written as 0.001) rendered from ``depth_camera`` (default: a wider view, 6/7 of the colour focal length, other
+    principal point, 15 mm baseline); ``extrinsics``/``depth_info``/``depth_stream`` False leave those out."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    types = store.types
+    fx, fy, cx, cy = seq.intrinsics
+    colour_camera = (fx, fy, cx, cy, seq.width, seq.height)
+    depth_camera = depth_camera or (fx * 6 / 7, fy * 6 / 7, cx + 2.0, cy - 1.5, seq.width, seq.height)
+    T = rs_extrinsic() if T_colour_depth is None else T_colour_depth
+    units = 0.001 if depth_units is None else depth_units
+    cache: dict = {}
+
+    def header(t: float, seq_no: int = 0):
+        stamp = types["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
+        return types["std_msgs/msg/Header"](seq=seq_no, stamp=stamp, frame_id="0")
+
+    def transform(T_ref: np.ndarray):
+        q = Rotation.from_matrix(T_ref[:3, :3]).as_quat()
+        return types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](x=T_ref[0, 3], y=T_ref[1, 3], z=T_ref[2, 3]),
+            rotation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+
+    topics = [("/file_version", "std_msgs/msg/UInt32"), (f"{RS_COLOUR}/image/data", "sensor_msgs/msg/Image"),
+              (f"{RS_COLOUR}/info/camera_info", "sensor_msgs/msg/CameraInfo")]
+    if depth_stream:
+        topics.append((f"{RS_DEPTH}/image/data", "sensor_msgs/msg/Image"))
+    if depth_info and depth_stream:
+        topics.append((f"{RS_DEPTH}/info/camera_info", "sensor_msgs/msg/CameraInfo"))
+    if extrinsics:
+        topics += [(f"{RS_COLOUR}/tf/0", "geometry_msgs/msg/Transform"),
+                   (f"{RS_DEPTH}/tf/0", "geometry_msgs/msg/Transform")]
+    if depth_units is not None:
+        topics.append((RS_UNITS_TOPIC, "std_msgs/msg/Float32"))
+    with Writer(path) as writer:
+        conns = {topic: writer.add_connection(topic, msgtype, typestore=store) for topic, msgtype in topics}
+
+        def put(topic, msg, t):
+            if topic in conns:
+                writer.write(conns[topic], int(round(t * 1e9)), store.serialize_ros1(msg, msg.__msgtype__))
+
+        put("/file_version", types["std_msgs/msg/UInt32"](data=3), 0.0)
+        put(f"{RS_COLOUR}/info/camera_info", _rs_camera_info(types, header(0.0), colour_camera,
+                                                             colour_model, colour_coeffs), 0.0)
+        put(f"{RS_DEPTH}/info/camera_info", _rs_camera_info(types, header(0.0), depth_camera, "Brown Conrady"), 0.0)
+        put(f"{RS_COLOUR}/tf/0", transform(T), 0.0)          # reference: the depth stream
+        put(f"{RS_DEPTH}/tf/0", transform(np.eye(4)), 0.0)
+        put(RS_UNITS_TOPIC, types["std_msgs/msg/Float32"](data=units), 0.0)
+        for frame in seq:
+            t = START_S + frame.timestamp
+            rgb = np.ascontiguousarray(frame.rgb[..., ::-1])
+            put(f"{RS_COLOUR}/image/data", _image(types, header(t, frame.index), rgb, "rgb8"), t)
+            if depth_stream:
+                depth = render_depth_camera(seq, frame.index, depth_camera, T, cache)
+                raw = np.clip(np.round(depth / (units or 0.001)), 0, 65535).astype(np.uint16)   # 0: a bad units topic
+                td = t + RS_DEPTH_DELAY_S
+                put(f"{RS_DEPTH}/image/data", _image(types, header(td, frame.index), raw, "mono16"), td)
+    return path

@@ -166,9 +166,23 @@ def camera_from_info(msg, topic: str, depth_encoding: str) -> dict:
             "depth_scale": DEPTH_ENCODINGS[depth_encoding][1]}
 
 
+def raw_pixels(msg, topic: str, dtype, channels: int) -> np.ndarray:
+    """The pixels of a sensor_msgs/Image as an HxWxC array of ``dtype`` in native byte order, honouring the
+    row ``step`` (padding) and ``is_bigendian``; a message too short for its size is a DatasetError."""
+    dtype = np.dtype(dtype)
+    encoding, height, width, step = msg.encoding, int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = width * channels * dtype.itemsize
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    if step < row_bytes or data.size < step * height:
+        raise DatasetError(f"topic '{topic}': {encoding} image {width}x{height} has {data.size} bytes "
+                           f"with step {step}, expected at least {row_bytes} per row")
+    rows = np.ascontiguousarray(data[: step * height].reshape(height, step)[:, :row_bytes])
+    return rows.view(dtype.newbyteorder(">" if msg.is_bigendian else "<")).reshape(height, width, channels)
+
+
 def image_array(msg, topic: str) -> np.ndarray:
     """A sensor_msgs/Image as an array: HxWx3 uint8 BGR for colour, HxW float32 metres for depth."""
-    encoding, height, width, step = msg.encoding, int(msg.height), int(msg.width), int(msg.step)
+    encoding = msg.encoding
     if encoding in COLOUR_ENCODINGS:
         dtype, channels = np.dtype(np.uint8), COLOUR_ENCODINGS[encoding]
     elif encoding in DEPTH_ENCODINGS:
@@ -176,13 +190,7 @@ def image_array(msg, topic: str) -> np.ndarray:
     else:
         raise DatasetError(f"topic '{topic}': unsupported image encoding '{encoding}' (colour: "
                            f"{', '.join(COLOUR_ENCODINGS)}; depth: {', '.join(DEPTH_ENCODINGS)})")
-    row_bytes = width * channels * dtype.itemsize
-    data = np.frombuffer(msg.data, dtype=np.uint8)
-    if step < row_bytes or data.size < step * height:
-        raise DatasetError(f"topic '{topic}': {encoding} image {width}x{height} has {data.size} bytes "
-                           f"with step {step}, expected at least {row_bytes} per row")
-    rows = np.ascontiguousarray(data[: step * height].reshape(height, step)[:, :row_bytes])
-    pixels = rows.view(dtype.newbyteorder(">" if msg.is_bigendian else "<")).reshape(height, width, channels)
+    pixels = raw_pixels(msg, topic, dtype, channels)
     if encoding in DEPTH_ENCODINGS:
         metres = pixels[..., 0].astype(np.float32) / np.float32(DEPTH_ENCODINGS[encoding][1])
         metres[~np.isfinite(metres) | (metres < 0)] = 0.0  # NaN/inf/negative mark missing depth in ROS

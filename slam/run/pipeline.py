@@ -29,6 +29,8 @@ With ``save_map`` the final map is also written (dynslam-map .npz, see backend.m
 with ``prior_map`` the run localises against that fixed map instead of building one.
 Final files are written atomically. Ctrl-C stops the run after the frame being processed and every
 result is still written (``slam.run.interrupts``); ``summary.json`` then says ``"interrupted": true``.
+A live camera's frames that were never processed (it does not wait for SLAM) are counted in
+``summary.json``'s ``dropped_frames``.
 Frames are checked before processing (``slam.run.input_checks``): a colour image of the wrong size is
 skipped with a warning, frames without any depth are reported.
 ``FrameObserver``s (e.g. the rerun live view, ``slam.run.viz_rerun``) see every processed frame and the
@@ -59,6 +61,7 @@ from slam.run.trajectory import TumStreamWriter, format_tum_line, tum_rows_from_
 log = logging.getLogger("dynslam")
 
 
+
 @dataclass
 class RunSummary:
     dataset: str
@@ -77,6 +80,8 @@ class RunSummary:
     missing_files: list[str] = field(default_factory=list)    # listed but absent, found when opening
     no_depth_frames: list[int] = field(default_factory=list)  # frames without a single valid depth pixel
     interrupted: bool = False                                 # stopped (Ctrl-C) before the last frame
+    dropped_frames: Optional[int] = None                      # live camera: frames it gave that were never
+                                                              # processed (newest frame wins); None: a recording
     dynamic_methods: list[str] = field(default_factory=list)
     dynamic_flagged: dict[str, dict[str, float]] = field(default_factory=dict)  # per method and fused
     loops: list[dict[str, Any]] = field(default_factory=list)   # every loop factor added, with timestamps
@@ -171,26 +176,41 @@ class Pipeline:
         from slam.run.report import make_strip_recorder
 
         self.dynamic_strip = make_strip_recorder(self.config, self._expected_frames())
-        with TumStreamWriter(self.output_dir / "trajectory_online.txt") as online:
-            for frame in self.dataset:
-                if self.max_frames is not None and self.summary.frames >= self.max_frames:
-                    break
-                if interrupt.requested:   # Ctrl-C during the frame before: stop here, then write everything
-                    self.summary.interrupted = True
-                    break
-                if not self.checks.accept(frame):
-                    continue
-                self.checks.observe_depth(frame)
-                t0 = time.perf_counter()
-                out = self.system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
-                self._record(out, online)
-                self.artifacts.on_frame(out, frame, self.system)
-                self.dynamic_strip.observe(self.summary.frames - 1, frame.rgb, self.system.last_frame,
-                                           self.system.last_dynamic_mask)
-                for observer in self.observers:
-                    observer.on_frame(frame, out, self.system)
-                if self.progress is not None:
-                    self.progress(out, time.perf_counter() - t0)
+        frames = iter(self.dataset)
+        try:
+            with TumStreamWriter(self.output_dir / "trajectory_online.txt") as online:
+                self._track_frames(frames, interrupt, online)
+        finally:   # a generator's ``finally`` runs now, not when it is collected (a live camera stops)
+            getattr(frames, "close", lambda: None)()
+
+    def _track_frames(self, frames, interrupt: DeferredInterrupt, online: TumStreamWriter) -> None:
+        # Checked before the next frame is read, not after: a live camera is not waited on again once
+        # the run is over (and a recording reads no frame it will not use).
+        while not self._stop_before_next(interrupt):
+            frame = next(frames, None)
+            if frame is None:
+                break
+            if not self.checks.accept(frame):
+                continue
+            self.checks.observe_depth(frame)
+            t0 = time.perf_counter()
+            out = self.system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
+            self._record(out, online)
+            self.artifacts.on_frame(out, frame, self.system)
+            self.dynamic_strip.observe(self.summary.frames - 1, frame.rgb, self.system.last_frame,
+                                       self.system.last_dynamic_mask)
+            for observer in self.observers:
+                observer.on_frame(frame, out, self.system)
+            if self.progress is not None:
+                self.progress(out, time.perf_counter() - t0)
+
+    def _stop_before_next(self, interrupt: DeferredInterrupt) -> bool:
+        if self.max_frames is not None and self.summary.frames >= self.max_frames:
+            return True
+        if interrupt.requested:   # Ctrl-C during the frame before: stop here, then write everything
+            self.summary.interrupted = True
+            return True
+        return False
 
     def _record(self, out: FrameOutput, online: TumStreamWriter) -> None:
         self.summary.frames += 1
@@ -241,6 +261,8 @@ class Pipeline:
         self.summary.skipped_files = [f"{p}: {why}" for p, why in skipped]
         self.summary.no_depth_frames = list(self.checks.no_depth_frames)
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
+        dropped = getattr(self.dataset, "dropped", None)
+        self.summary.dropped_frames = None if dropped is None else int(dropped)
         from slam.run.trajectory_formats import export_formats
 
         export_formats(self.output_dir, self.config.output.trajectory_formats)
@@ -318,6 +340,8 @@ class Pipeline:
                  f"{s.landmarks} landmarks, {s.wall_time_s:.1f} s"]
         timing = ", ".join(f"{name} {v['median_ms']:.1f}" for name, v in s.timing_ms.items())
         lines.append(f"median ms/frame: {timing}")
+        if s.dropped_frames:
+            lines.append(f"dropped {s.dropped_frames} camera frames (processing was slower than the camera)")
         if self.report is not None:
             lines.append(format_report(self.report))
         lines.append(f"results: {self.output_dir}")

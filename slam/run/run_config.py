@@ -23,15 +23,19 @@ def parse_overrides(pairs: Sequence[str]) -> dict:
 
 
 def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str], overrides: dict,
-                       fixed: Optional[dict] = None, fixed_source: str = "demo"):
+                       fixed: Optional[dict] = None, fixed_source: str = "demo", camera: Optional[dict] = None):
     """Defaults, then the camera of the dataset (a bag's CameraInfo, an image folder's intrinsics.yaml,
     a TUM folder's camera.yaml, else a preset guessed from the name), then the user's files in order,
-    then ``fixed`` dotted values of the command (the demo's generated camera), then --set overrides:
+    then ``fixed`` dotted values of the command (the demo's generated camera), then --set overrides
+    (``camera``: the keys a live camera reported, in place of the dataset's camera):
     merged first and validated once, an error naming the layer that set the key."""
     from slam.core.config import CameraConfig, build_config, overrides_layer, yaml_layer
     from slam.datasets import guess_camera, read_camera
 
     layers = []
+    if camera is not None:
+        known = {f"camera.{k}": v for k, v in camera.items() if k in CameraConfig.model_fields}
+        layers.append(overrides_layer(known, "the camera"))
     if dataset_path is not None:
         found = read_camera(dataset_path)
         guessed = guess_camera(dataset_path)
