@@ -124,8 +124,8 @@ class FailingAt:
             if frame.index == self.stop:
                 if self.error:
                     raise DatasetError(f"frame {self.stop}: unreadable (test)")
-                signal.raise_signal(signal.SIGINT)   # Ctrl-C: the run stops before this frame
-                continue
+                signal.raise_signal(signal.SIGINT)   # Ctrl-C while reading this frame: none comes after
+                return
             yield frame
 
     def groundtruth(self):

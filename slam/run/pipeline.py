@@ -189,6 +189,7 @@ class Pipeline:
         while not self._stop_before_next(interrupt):
             frame = next(frames, None)
             if frame is None:
+                self._stop_before_next(interrupt)   # a Ctrl-C while the last read ended still counts
                 break
             if not self.checks.accept(frame):
                 continue
