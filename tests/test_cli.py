@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -208,7 +209,7 @@ def demo_run(tmp_path_factory) -> tuple[int, Path]:
     out_dir = tmp_path_factory.mktemp("demo") / "results"
     saved_format = warnings.formatwarning
     try:
-        code = main(["demo", "--movers", "none", "--frames", "40", "-o", str(out_dir), "-q"])
+        code = main(["demo", "--no-compare", "--movers", "none", "--frames", "40", "-o", str(out_dir), "-q"])
     finally:
         warnings.formatwarning = saved_format
     return code, out_dir
@@ -272,7 +273,7 @@ def synthetic_run(synthetic_folder, tmp_path_factory) -> tuple[int, Path]:
     out_dir = tmp_path_factory.mktemp("run") / "results"
     saved_format = warnings.formatwarning
     try:
-        code = main(["run", str(synthetic_folder), "-o", str(out_dir), "-q"])
+        code = main(["run", str(synthetic_folder), "-o", str(out_dir), "-q", "-c", "static"])
     finally:
         warnings.formatwarning = saved_format
     return code, out_dir
@@ -301,7 +302,7 @@ def test_run_on_synthetic_folder_tracks_every_frame(synthetic_run, synthetic_fol
 
 
 def test_run_max_frames(capsys, synthetic_folder, tmp_path):
-    code, out, _ = run_cli(capsys, "run", synthetic_folder, "-o", tmp_path / "out", "-q", "--max-frames", "12")
+    code, out, _ = run_cli(capsys, "run", synthetic_folder, "-o", tmp_path / "out", "-q", "-c", "static", "--max-frames", "12")
     assert code == 0
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["frames"] == 12 and summary["tracked"] == 12
@@ -314,7 +315,7 @@ def test_dynamic_run_writes_per_frame_flag_counts(tmp_path):
     from slam.cli import main
 
     out = tmp_path / "dyn"
-    assert main(["demo", "--movers", "none", "--frames", "12", "-o", str(out), "-q", "--set", "dynamic.methods=[cpr]",
+    assert main(["demo", "--no-compare", "--movers", "none", "--frames", "12", "-o", str(out), "-q", "--set", "dynamic.methods=[cpr]",
                  "--set", "dynamic.fusion=single"]) == 0
     lines = (out / "dynamic.csv").read_text().strip().splitlines()
     assert lines[0] == "timestamp,cpr,fused"
@@ -340,7 +341,7 @@ def test_detector_free_method_needs_no_model(tmp_path, monkeypatch):
     from slam.cli import main
 
     monkeypatch.setenv("DYNSLAM_DETECTOR_MODEL", str(tmp_path / "absent.onnx"))
-    assert main(["demo", "--movers", "none", "--frames", "4", "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_cpr"]) == 0
+    assert main(["demo", "--no-compare", "--movers", "none", "--frames", "4", "-o", str(tmp_path / "out"), "-q", "-c", "dynamic_cpr"]) == 0
 
 
 def test_blackout_option_marks_blank_frames_lost(tmp_path):
@@ -349,7 +350,7 @@ def test_blackout_option_marks_blank_frames_lost(tmp_path):
 
     folder = write_tum_layout(SyntheticSequence(n_frames=20), tmp_path / "seq")
     out = tmp_path / "out"
-    assert main(["run", str(folder), "-o", str(out), "-q", "--blackout", "8:4"]) == 0
+    assert main(["run", str(folder), "-o", str(out), "-q", "-c", "static", "--blackout", "8:4"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["lost_frames"] == [8, 9, 10, 11] and summary["tracked"] == 16
     lines = (out / "trajectory.txt").read_text().splitlines()
@@ -395,7 +396,7 @@ def test_run_writes_the_keyframe_graph(tmp_path):
     from slam.cli import main
 
     out = tmp_path / "out"
-    assert main(["demo", "--movers", "none", "--frames", "15", "-o", str(out), "-q"]) == 0
+    assert main(["demo", "--no-compare", "--movers", "none", "--frames", "15", "-o", str(out), "-q"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     graph, values = gtsam.readG2o(str(out / "graph.g2o"), True)
     assert values.size() == summary["keyframes"] and graph.size() >= summary["keyframes"] - 1
@@ -448,3 +449,20 @@ def test_demo_movers_list_every_generator_choice():
     from slam.datasets.synthetic_scenes import HARD_SCENES
 
     assert DEMO_MOVERS == tuple(MOVER_PRESETS) + HARD_SCENES
+
+
+def test_demo_runs_with_and_without_dynamic_handling_and_prints_both(tmp_path, capsys):
+    """The default demo: people walking, the default config (dynamic handling on), then the same run
+    with dynamic handling off; both ATEs on one line, the second run in without_dynamic/."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--frames", "20", "-o", str(out), "-q"]) == 0
+    printed = capsys.readouterr().out
+    line = [ln for ln in printed.splitlines() if ln.startswith("ATE with dynamic handling")]
+    assert len(line) == 1, printed
+    on_mm, off_mm = (float(x) for x in re.findall(r"([0-9.]+) mm", line[0]))
+    on = json.loads((out / "summary.json").read_text())
+    off = json.loads((out / "without_dynamic" / "summary.json").read_text())
+    assert on["dynamic_methods"] and not off["dynamic_methods"]
+    assert on_mm == pytest.approx(on["ate_rmse_m"] * 1000, abs=0.05)
+    assert off_mm == pytest.approx(off["ate_rmse_m"] * 1000, abs=0.05)
+    assert on_mm < off_mm

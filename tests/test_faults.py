@@ -312,7 +312,7 @@ def test_images_of_the_wrong_size_are_skipped_naming_file_and_sizes(tum_folder, 
 def test_every_frame_of_the_wrong_size_is_a_camera_error(tum_folder, tmp_path, capsys):
     out = tmp_path / "out"
     with pytest.warns(DatasetWarning, match="colour image is 640x480 but the camera is 320x240"):
-        code = main(["run", str(tum_folder), "-o", str(out), "-q", "--set", "camera.width=320",
+        code = main(["run", str(tum_folder), "-o", str(out), "-q", "-c", "static", "--set", "camera.width=320",
                      "--set", "camera.height=240"])
     err = capsys.readouterr().err
     assert code == 2 and "are all 640x480 but the camera is 320x240: wrong camera configuration" in err, err
@@ -391,7 +391,7 @@ def test_nan_inf_and_negative_bag_depth_is_invalid_depth(tmp_path, capsys):
     nan_depth = next(iter(_PoisonedDepth(seq))).depth
     assert system.process(frames[0].rgb, nan_depth, 0.0, 0).T_wc is not None
     assert np.isfinite(system.last_frame.depths).all() and (system.last_frame.depths >= 0).all()
-    assert main(["run", str(bag), "-o", str(tmp_path / "out"), "-q", "--set", "output.report=false"]) == 0
+    assert main(["run", str(bag), "-o", str(tmp_path / "out"), "-q", "-c", "static", "--set", "output.report=false"]) == 0
     summary = read_summary(tmp_path / "out")
     assert summary["frames"] == summary["tracked"] == 12
 
@@ -430,10 +430,10 @@ def test_a_map_of_another_place_never_localizes_and_stays_unchanged(tmp_path, ca
     room_a = write_tum_layout(synthetic_sequence(20, seed=0), tmp_path / "room_a")
     room_b = write_tum_layout(synthetic_sequence(15, seed=1), tmp_path / "room_b")
     map_path = tmp_path / "a.npz"
-    assert main(["run", str(room_a), "-o", str(tmp_path / "a"), "-q", "--save-map", str(map_path),
+    assert main(["run", str(room_a), "-o", str(tmp_path / "a"), "-q", "-c", "static", "--save-map", str(map_path),
                  "--set", "output.report=false"]) == 0
     digest = hashlib.sha256(map_path.read_bytes()).hexdigest()
-    assert main(["run", str(room_b), "-o", str(tmp_path / "b"), "-q", "--load-map", str(map_path),
+    assert main(["run", str(room_b), "-o", str(tmp_path / "b"), "-q", "-c", "static", "--load-map", str(map_path),
                  "--set", "output.report=false"]) == 0
     summary = read_summary(tmp_path / "b")
     assert summary["frames"] == summary["lost"] == 15 and summary["tracked"] == 0

@@ -125,7 +125,7 @@ def test_dynslam_run_on_an_image_folder_writes_a_trajectory(tmp_path, monkeypatc
     monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)
     root = write_folder(tmp_path / "my_room", SyntheticSequence(n_frames=15))
     out = tmp_path / "out"
-    assert main(["run", str(root), "-o", str(out), "-q"]) == 0
+    assert main(["run", str(root), "-o", str(out), "-q", "-c", "static"]) == 0
     rows = [line.split() for line in (out / "trajectory.txt").read_text().splitlines()
             if line.strip() and not line.startswith("#")]
     assert len(rows) == 15

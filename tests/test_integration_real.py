@@ -128,7 +128,7 @@ def test_corrupt_rgb_and_deleted_depth_are_skipped_with_warnings(tmp_path):
     corrupt.write_bytes(corrupt.read_bytes()[:1000])  # a truncated PNG
     deleted.unlink()
 
-    config = resolve_run_config(root, [], {})
+    config = resolve_run_config(root, ["static"], {})   # about reading files: no detector needed
     with pytest.warns(DatasetWarning) as missing_warnings:
         dataset = TumDataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
     assert any(deleted.name in str(w.message) for w in missing_warnings), [str(w.message) for w in missing_warnings]

@@ -168,12 +168,12 @@ def test_cli_save_and_load_map(tmp_path, monkeypatch):
     root = tmp_path / "synthetic_seq"
     write_tum_layout(seq, root)
     map_path = tmp_path / "map.npz"
-    assert main(["run", str(root), "-o", str(tmp_path / "a"), "-q", "--save-map", str(map_path)]) == 0
+    assert main(["run", str(root), "-o", str(tmp_path / "a"), "-q", "-c", "static", "--save-map", str(map_path)]) == 0
     assert map_path.is_file() and sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
     before = map_arrays(load_map(map_path)[0])
-    assert main(["run", str(root), "-o", str(tmp_path / "b"), "-q", "--load-map", str(map_path)]) == 0
+    assert main(["run", str(root), "-o", str(tmp_path / "b"), "-q", "-c", "static", "--load-map", str(map_path)]) == 0
     assert_same_arrays(before, map_arrays(load_map(map_path)[0]))
-    assert main(["run", str(root), "-o", str(tmp_path / "c"), "-q", "--load-map", str(map_path),
+    assert main(["run", str(root), "-o", str(tmp_path / "c"), "-q", "-c", "static", "--load-map", str(map_path),
                  "--set", "camera.fx=500"]) == 2
     (tmp_path / "bad.npz").write_bytes(b"nonsense")
     assert main(["run", str(root), "-o", str(tmp_path / "d"), "-q", "--load-map", str(tmp_path / "bad.npz")]) == 2

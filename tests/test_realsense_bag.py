@@ -165,7 +165,7 @@ def test_dynslam_run_on_a_realsense_bag_follows_the_true_path(tmp_path, monkeypa
     seq = SyntheticSequence(n_frames=15)
     path = write_realsense_bag(tmp_path / "room.bag", seq)
     out = tmp_path / "out"
-    assert main(["run", str(path), "-q", "-o", str(out)]) == 0
+    assert main(["run", str(path), "-q", "-c", "static", "-o", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["tracked"] == 15 and summary["dropped_frames"] is None
     from slam.run.evaluation import evaluate

@@ -34,7 +34,7 @@ def dynamic_run(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("report") / "results"
     saved = warnings.formatwarning
     try:
-        code = main(["demo", "--movers", "none", "--frames", str(FRAMES), "-o", str(out), "-q", "--set", "dynamic.methods=[cpr]",
+        code = main(["demo", "--no-compare", "--movers", "none", "--frames", str(FRAMES), "-o", str(out), "-q", "--set", "dynamic.methods=[cpr]",
                      "--set", "dynamic.fusion=single", "--set", "output.trajectory_formats=[tum,kitti,euroc]"])
     finally:
         warnings.formatwarning = saved
@@ -162,11 +162,11 @@ def test_a_failing_report_keeps_the_run_and_report_false_skips_it(tmp_path, monk
 
     monkeypatch.setattr(slam.run.report, "write_report", broken)
     with caplog.at_level(logging.WARNING, logger="dynslam"):
-        assert main(["demo", "--movers", "none", "--frames", "5", "-o", str(tmp_path / "a"), "-q"]) == 0
+        assert main(["demo", "--no-compare", "--movers", "none", "--frames", "5", "-o", str(tmp_path / "a"), "-q"]) == 0
     assert (tmp_path / "a" / "summary.json").is_file()
     assert "report not written" in caplog.text and "disk full" in caplog.text
     monkeypatch.undo()
-    assert main(["demo", "--movers", "none", "--frames", "5", "-o", str(tmp_path / "b"), "-q", "--set", "output.report=false"]) == 0
+    assert main(["demo", "--no-compare", "--movers", "none", "--frames", "5", "-o", str(tmp_path / "b"), "-q", "--set", "output.report=false"]) == 0
     assert (tmp_path / "b" / "summary.json").is_file() and not (tmp_path / "b" / "report").exists()
 
 

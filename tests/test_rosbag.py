@@ -110,7 +110,7 @@ def test_dynslam_run_on_a_bag_writes_a_trajectory(tmp_path, monkeypatch):
     seq = SyntheticSequence(n_frames=15)
     path = write_bag(tmp_path / "synthetic_room.bag", seq, 1, "16UC1", distortion=(0.0,) * 5, extra_rgb=False)
     out = tmp_path / "out"
-    assert main(["run", str(path), "-o", str(out), "-q"]) == 0
+    assert main(["run", str(path), "-o", str(out), "-q", "-c", "static"]) == 0
     rows = [line.split() for line in (out / "trajectory.txt").read_text().splitlines()
             if line.strip() and not line.startswith("#")]
     assert len(rows) == 15

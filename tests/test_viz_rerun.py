@@ -72,7 +72,7 @@ def demo_recording(tmp_path_factory) -> tuple[int, Path, Path]:
     """``dynslam demo --frames 8 --movers people -c dynamic_box_depth --viz-save run.rrd``."""
     require_rerun()
     folder = tmp_path_factory.mktemp("viz")
-    code = main(["demo", "--frames", "8", "--movers", "people", "-c", "dynamic_box_depth", "-q",
+    code = main(["demo", "--no-compare", "--frames", "8", "--movers", "people", "-c", "dynamic_box_depth", "-q",
                  "-o", str(folder / "results"), "--viz-save", str(folder / "run.rrd")])
     return code, folder / "results", folder / "run.rrd"
 
@@ -163,7 +163,7 @@ def test_viz_save_is_renamed_complete_after_an_error_or_ctrl_c(tmp_path, python_
 
 def test_viz_without_rerun_says_how_to_install(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "rerun", None)   # import rerun -> ImportError
-    code = main(["demo", "--frames", "3", "-q", "-o", str(tmp_path / "out"), "--viz-save", str(tmp_path / "r.rrd")])
+    code = main(["demo", "--no-compare", "--frames", "3", "-q", "-o", str(tmp_path / "out"), "--viz-save", str(tmp_path / "r.rrd")])
     err = capsys.readouterr().err
     assert code == 2 and 'pip install "dynslam[viz]"' in err and "Traceback" not in err, err
     assert not (tmp_path / "out").exists() and not (tmp_path / "r.rrd").exists()
@@ -175,7 +175,7 @@ def test_viz_without_a_display_is_refused(tmp_path, monkeypatch, capsys):
         pytest.skip("the display check is for Linux (X11 / Wayland)")
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    code = main(["demo", "--frames", "3", "-q", "-o", str(tmp_path / "out"), "--viz"])
+    code = main(["demo", "--no-compare", "--frames", "3", "-q", "-o", str(tmp_path / "out"), "--viz"])
     err = capsys.readouterr().err
     assert code == 2 and "no display" in err and "--viz-save" in err, err
 
@@ -184,14 +184,14 @@ def test_viz_without_a_display_is_refused(tmp_path, monkeypatch, capsys):
 def test_viz_save_bad_target_is_refused(tmp_path, monkeypatch, capsys, target, says):
     require_rerun()
     monkeypatch.chdir(tmp_path)
-    code = main(["demo", "--frames", "3", "-q", "-o", str(tmp_path / "out"), "--viz-save", target])
+    code = main(["demo", "--no-compare", "--frames", "3", "-q", "-o", str(tmp_path / "out"), "--viz-save", target])
     err = capsys.readouterr().err
     assert code == 2 and says in err, err
 
 
 def test_viz_and_viz_save_are_exclusive(capsys):
     with pytest.raises(SystemExit) as exc:
-        main(["demo", "--viz", "--viz-save", "r.rrd"])
+        main(["demo", "--no-compare", "--viz", "--viz-save", "r.rrd"])
     assert exc.value.code == 2 and "not allowed with" in capsys.readouterr().err
 
 

@@ -130,6 +130,7 @@ def run(frames: int = 2000, seed: int = 0, path: str = "orbit", block: int = 100
             return run(frames, seed, path, block, Path(tmp), config_files, overrides, tracemalloc_top, progress)
     from slam.datasets import SyntheticSequence
     from slam.run.pipeline import Pipeline
+    from slam.run.demo import demo_detector
 
     rss_start = current_rss_mib()
     sequence = SyntheticSequence(n_frames=frames, seed=seed, path=path)
@@ -146,7 +147,7 @@ def run(frames: int = 2000, seed: int = 0, path: str = "orbit", block: int = 100
                   f"{np.mean(sampler.ms[-100:]):.1f} ms/frame, RSS {sampler.rss_mib[-1]:.0f} MiB",
                   file=sys.stderr, flush=True)
 
-    pipeline = Pipeline(sequence, config, output, progress=on_frame)
+    pipeline = Pipeline(sequence, config, output, progress=on_frame, detector=demo_detector(sequence))
     rss_built = current_rss_mib()
     start = time.perf_counter()
     summary = pipeline.run()
