@@ -56,6 +56,7 @@ def test_fr1_xyz_tracks_every_frame_with_ate_below_2cm(xyz_run):
     assert summary["ate_rmse_m"] == pytest.approx(report.ate.rmse, abs=1e-6)
 
 
+@pytest.mark.slow   # determinism of the default run is also gated across processes (test_accuracy_gates)
 def test_fr1_xyz_runs_are_bit_identical(xyz_run, tmp_path):
     root, out_a, pipeline_a, _ = xyz_run
     # fr1_xyz_first37 has 36 associated frames, so "the first 40" is the whole folder: the module's

@@ -58,7 +58,7 @@ def trajectory_ate(system: System, gt) -> float:
 def synthetic_run(tmp_path_factory):
     seq = SyntheticSequence(n_frames=N_FRAMES)
     frames = list(seq)
-    config = load_config()
+    config = load_config("static")   # about map files: the dynamic front end only adds time
     system = System(config)
     tracked = run_system(system, frames)
     assert tracked.all()
@@ -182,7 +182,7 @@ def test_cli_save_and_load_map(tmp_path, monkeypatch):
 @pytest.mark.real
 def test_localization_only_on_fr1_xyz(tmp_path):
     root = real_sequence(XYZ)
-    config = resolve_run_config(root, [], {})
+    config = resolve_run_config(root, ["static"], {})   # about localization: no detector needed
     dataset = TumDataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
     frames = list(dataset)
     gt = dataset.groundtruth()

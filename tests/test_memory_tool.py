@@ -67,6 +67,7 @@ def test_rss_readers_report_this_process(tmp_path):
     assert memory.current_rss_mib(tmp_path / "absent") == 0.0
 
 
+@pytest.mark.slow
 def test_short_run_reports_every_field(tmp_path):
     frames, block = 40, 15
     report = memory.run(frames=frames, seed=0, block=block, output=tmp_path / "run",
