@@ -115,7 +115,8 @@ def run_peer(python: str, sequence: Path, workdir: Path) -> dict:
     peer = SHARED / "tools" / "orbslam3_peer"
     settings = "bonn.yaml" if "bonn" in sequence.name else "tum1.yaml"
     est = workdir / f"orbslam3_{sequence.name}.txt"
-    proc = subprocess.run([python, str(peer / "run_orbslam3.py"), str(sequence), str(peer / "small_vocabulary.txt"),
+    python = str(Path(python).absolute())   # relative to where the user typed it, not to cwd=peer below
+    proc = subprocess.run([python, str(peer / "run_orbslam3.py"), str(sequence.absolute()), str(peer / "small_vocabulary.txt"),
                            str(peer / settings), str(est)], capture_output=True, text=True, cwd=peer)
     line = next((l for l in proc.stdout.splitlines() if l.startswith("states:")), "")
     if proc.returncode != 0 or not est.is_file():

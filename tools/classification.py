@@ -13,9 +13,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-import yaml
 
 from slam.datasets import SyntheticSequence
+from slam.run.run_config import parse_overrides
 from slam.run.dynamic_eval import classify_synthetic, synthetic_config
 
 
@@ -28,12 +28,7 @@ def main(argv=None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value after the preset (repeatable)")
     args = parser.parse_args(argv)
-    overrides = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            parser.error(f"--set expects KEY=VALUE, got '{item}'")
-        overrides[key.strip()] = yaml.safe_load(value)
+    overrides = parse_overrides(args.set)
     sequence = SyntheticSequence(n_frames=args.frames, movers=args.movers, seed=args.seed)
     scores = classify_synthetic(sequence, synthetic_config(sequence, preset=args.preset, **overrides))
     print(f"{sequence.name}, {args.frames} frames, preset {args.preset}: {scores.features} features "

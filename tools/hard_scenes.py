@@ -14,23 +14,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-import yaml
 
 from slam.datasets import SyntheticSequence
 from slam.datasets.synthetic_scenes import HARD_SCENES, HardScene
 from slam.run.demo import DEMO_ORACLE_MARGIN_PX
+from slam.run.run_config import parse_overrides
 from slam.run.dynamic_eval import evaluate_synthetic, scene_detector, synthetic_config
 
-
-
-def _overrides(items: list[str], parser: argparse.ArgumentParser) -> dict:
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep:
-            parser.error(f"--set expects KEY=VALUE, got '{item}'")
-        out[key.strip()] = yaml.safe_load(value)
-    return out
 
 
 def main(argv=None) -> int:
@@ -45,7 +35,7 @@ def main(argv=None) -> int:
     unknown = sorted(set(args.scenes) - set(HARD_SCENES))
     if unknown:
         parser.error(f"unknown scene(s) {', '.join(unknown)}; choose from {', '.join(HARD_SCENES)}")
-    overrides = _overrides(args.set, parser)
+    overrides = parse_overrides(args.set)
     clean_seq = SyntheticSequence(n_frames=args.frames, seed=args.seed)
     clean = evaluate_synthetic(clean_seq, synthetic_config(clean_seq, preset=args.preset, **overrides))
     print(f"same path without people: ATE {clean.ate_rmse * 1000:.1f} mm, worst frame {clean.max_error * 1000:.1f} mm")
