@@ -36,9 +36,8 @@ def fuse_loop_landmarks(mapper: LocalMapper, query_kf: int, pairs: np.ndarray) -
     touched = _merge_duplicates(mapper, current[~fresh], old[~fresh])
     _add_query_observations(mapper, query_kf, kp[fresh], old[fresh])
     mapper.promote_landmarks(old)
-    obs = slam_map.observations
-    pending = np.flatnonzero(np.isin(obs.lm, old) & ~obs.in_graph)
-    mapper.add_factors(pending)
+    rows = slam_map.observation_rows(old)
+    mapper.add_factors(rows[~slam_map.observations.in_graph[rows]])
     for k in np.union1d(touched, [query_kf]):
         slam_map.update_covisibility(int(k))
     return int(usable.sum())
@@ -60,13 +59,13 @@ def _merge_duplicates(mapper: LocalMapper, duplicates: np.ndarray, targets: np.n
     lm, obs = slam_map.landmarks, slam_map.observations
     order = np.argsort(duplicates)
     dup_sorted, tgt_sorted = duplicates[order], targets[order]
-    rows = np.flatnonzero(np.isin(obs.lm, dup_sorted))
+    rows = slam_map.observation_rows(dup_sorted)
     handles = obs.factor[rows][obs.in_graph[rows] & (obs.factor[rows] >= 0)]
     if len(handles):
         mapper.graph.remove_factors(handles.tolist())
     obs.in_graph[rows] = False
     obs.factor[rows] = -1
-    obs.lm[rows] = tgt_sorted[np.searchsorted(dup_sorted, obs.lm[rows])]
+    slam_map.relink_observations(rows, tgt_sorted[np.searchsorted(dup_sorted, obs.lm[rows])])
     for column in ("n_obs", "visible", "found", "dynamic_sum", "dynamic_hits"):
         values = getattr(lm, column)
         np.add.at(values, tgt_sorted, values[dup_sorted])

@@ -79,6 +79,47 @@ def synthetic_config(sequence, preset: Optional[str] = "static", **overrides):
     return make(sequence, preset=preset, **overrides)
 
 
+def grow_random_map(seed: int, n_keyframes: int, window: int = 6, per_keyframe: int = 40, fuse_every: int = 5):
+    """Yield ``(slam_map, touched)`` while a seeded random ``SlamMap`` grows one keyframe at a time.
+
+    Keyframe k observes new landmarks and ones seen in the last ``window`` keyframes (sometimes the
+    same landmark twice, as after a fusion). Every ``fuse_every`` keyframes a few landmarks are
+    fused into others the way ``landmark_fusion`` does it (observations re-pointed, duplicate bad).
+    ``touched``: keyframes whose covisibility was updated (ascending). Built through the map's own
+    API only, so a brute-force reference can replay the same map."""
+    from types import SimpleNamespace
+
+    from backend.map_store import SlamMap
+
+    rng = np.random.default_rng(seed)
+    slam_map = SlamMap()
+    first_of = [0]                       # first landmark id of each keyframe
+    for k in range(n_keyframes):
+        n_new = int(rng.integers(per_keyframe // 2, per_keyframe))
+        new = slam_map.landmarks.append(xyz=rng.normal(size=(n_new, 3)), anchor_kf=np.full(n_new, k))
+        old_pool = np.arange(first_of[max(0, k - window)], new[0])
+        old = rng.choice(old_pool, size=min(len(old_pool), per_keyframe // 2), replace=False)
+        lms = np.concatenate([old, new, rng.choice(new, size=2)])     # two repeated observations
+        slam_map.add_keyframe(SimpleNamespace(index=k, timestamp=float(k), gray=None), np.eye(4), lms)
+        slam_map.observations.append(kf=np.full(len(lms), k), lm=lms, kp=np.arange(len(lms)))
+        first_of.append(len(slam_map.landmarks))
+        slam_map.update_covisibility(k)
+        touched = np.array([k])
+        if k and k % fuse_every == 0:
+            ids = np.arange(len(slam_map.landmarks))
+            dup = rng.choice(ids, size=6, replace=False)
+            target = rng.choice(np.setdiff1d(ids, dup), size=6)
+            order = np.argsort(dup)
+            rows = slam_map.observation_rows(dup)
+            obs = slam_map.observations
+            slam_map.relink_observations(rows, target[order][np.searchsorted(dup[order], obs.lm[rows])])
+            slam_map.landmarks.bad[dup] = True
+            touched = np.union1d(np.unique(obs.kf[rows]), [k])
+            for t in touched:
+                slam_map.update_covisibility(int(t))
+        yield slam_map, touched
+
+
 def run_dynslam(args: Sequence[str], timeout: float = 600, env: Optional[dict] = None,
                 cwd: Optional[Path] = None) -> subprocess.CompletedProcess:
     """``dynslam ARGS`` in a fresh Python process (what a user runs), capturing its output."""
