@@ -115,3 +115,24 @@ def test_correlation_scores_match_a_per_pose_loop():
         dist, idx = cKDTree(ref_xyz).query(moved, k=4)
         expected.append(np.min(dist + np.abs(src_i[pick][:, None] - ref_i[idx]), axis=1).mean())
     np.testing.assert_allclose(correlation_scores(src, src_i, poses, ref, cfg), expected, rtol=1e-12)
+
+
+@pytest.mark.parametrize("k", [3, 10])
+def test_kmeans_matches_scipy_kmeans2(k):
+    import warnings
+
+    from scipy.cluster.vq import kmeans2
+
+    from frontend.dynamic.cpr_icp import cluster
+
+    rng = np.random.default_rng(7 + k)
+    clouds = [rng.normal(size=(800, 3)),
+              np.repeat(rng.normal(size=(40, 3)), 15, axis=0),        # duplicates: ties and empty clusters
+              rng.uniform(0, 3, (3000, 3))]
+    for xyz in clouds:
+        for seed in range(3):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")                        # kmeans2 warns about empty clusters
+                _, expected = kmeans2(xyz, k, iter=10, minit="++", seed=np.random.default_rng(seed),
+                                      check_finite=False)
+            np.testing.assert_array_equal(cluster(xyz, k, seed), expected)   # bit for bit
