@@ -20,76 +20,23 @@ needs them to converge after relinearisation, see docs/engineering notes).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
 from typing import Iterable, Optional
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from slam.core.config import BackendConfig
-from slam.core.errors import RuntimeFailure
+# re-exported: the public names of the back end's core (backend/__init__.py, README)
+from backend.factors import BackendError, BackendParams, FactorBuilder, StereoCalibration, pose3
 
-
-class BackendError(RuntimeFailure, RuntimeError):
-    """The graph cannot accept a request (unknown variable, singular system, ...)."""
-
-
-@dataclass(frozen=True)
-class StereoCalibration:
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    baseline: float
-
-
-def _config_default(name: str):
-    """The default of ``backend.<name>`` in the run config: one set of defaults for both entry points."""
-    return BackendConfig.model_fields[name].default
-
-
-@dataclass
-class BackendParams:
-    """What the graph needs. The shared parameters default to the config's ``backend`` section, so
-    ``FactorGraphBackend(BackendParams(), calib)`` computes what a run with default settings does."""
-
-    relinearize_threshold: float = _config_default("relinearize_threshold")
-    relinearize_skip: int = _config_default("relinearize_skip")
-    extra_updates: int = _config_default("extra_updates")
-    pixel_sigma: float = _config_default("pixel_sigma")
-    depth_noise_coeff: float = _config_default("depth_noise_coeff")
-    huber_k: float = _config_default("huber_k")
-    max_dynamic_inflation: float = _config_default("max_dynamic_inflation")
-    prior_sigma: float = 1e-4
-    # A very weak prior (metres) at each landmark's first estimate. It never competes with real
-    # observations (1 px at 3 m is ~6 mm), but keeps the system solvable when every observation of a
-    # landmark stops informing it: a stereo factor whose point falls behind its camera (e.g. after
-    # a loop correction moves keyframes) has zero Jacobians, and iSAM2 throws IndeterminantLinearSystem.
-    landmark_prior_sigma: float = 100.0
-
-    @classmethod
-    def from_config(cls, cfg: BackendConfig) -> "BackendParams":
-        """The graph's parameters from a run's ``backend`` section (the priors keep their defaults)."""
-        shared = {f.name: getattr(cfg, f.name) for f in fields(cls) if f.name in BackendConfig.model_fields}
-        return cls(**shared)
-
-
-def pose3(T: np.ndarray) -> gtsam.Pose3:
-    """A gtsam pose from a 4x4 matrix; the rotation is re-orthonormalised (gtsam does not check)."""
-    T = np.asarray(T, dtype=float)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*T[:3, 3]))
+__all__ = ["BackendError", "BackendParams", "FactorGraphBackend", "StereoCalibration", "pose3"]
 
 
 class FactorGraphBackend:
     def __init__(self, params: BackendParams, calibration: StereoCalibration):
         self.params = params
         self.calibration = calibration
-        c = calibration
-        self._K_stereo = gtsam.Cal3_S2Stereo(c.fx, c.fy, 0.0, c.cx, c.cy, c.baseline)
-        self._K_mono = gtsam.Cal3_S2(c.fx, c.fy, 0.0, c.cx, c.cy)
+        self._factors = FactorBuilder(params, calibration)
         isam_params = gtsam.ISAM2Params()
         isam_params.setRelinearizeThreshold(params.relinearize_threshold)
         isam_params.relinearizeSkip = params.relinearize_skip
@@ -101,7 +48,6 @@ class FactorGraphBackend:
         self._keyframes: set[int] = set()
         self._landmarks: set[int] = set()
         self._estimate: Optional[gtsam.Values] = None
-        self._noise_cache: dict[tuple, gtsam.noiseModel.Base] = {}
         self._relative: dict[int, tuple[int, int, np.ndarray]] = {}   # handle -> (a, b, T_ab) of pose factors
 
     # --- variables ------------------------------------------------------------------------------
@@ -111,8 +57,7 @@ class FactorGraphBackend:
             raise BackendError(f"keyframe {kf_id} already exists")
         self._pending_values.insert(X(kf_id), pose3(T_wc_guess))
         if not self._keyframes:
-            noise = gtsam.noiseModel.Isotropic.Sigma(6, self.params.prior_sigma)
-            self._add_factor(gtsam.PriorFactorPose3(X(kf_id), pose3(T_wc_guess), noise))
+            self._add_factor(self._factors.first_pose_prior(kf_id, T_wc_guess))
         self._keyframes.add(kf_id)
 
     def add_landmark(self, lm_id: int, xyz_guess: np.ndarray) -> None:
@@ -120,10 +65,9 @@ class FactorGraphBackend:
             raise BackendError(f"landmark {lm_id} already exists")
         point = gtsam.Point3(*np.asarray(xyz_guess, float))
         self._pending_values.insert(L(lm_id), point)
-        if self.params.landmark_prior_sigma > 0:
-            noise = self._noise_cache.setdefault(
-                ("landmark_prior",), gtsam.noiseModel.Isotropic.Sigma(3, self.params.landmark_prior_sigma))
-            self._add_factor(gtsam.PriorFactorPoint3(L(lm_id), point, noise))
+        prior = self._factors.landmark_prior(lm_id, xyz_guess)
+        if prior is not None:
+            self._add_factor(prior)
         self._landmarks.add(lm_id)
 
     def has_keyframe(self, kf_id: int) -> bool:
@@ -142,18 +86,7 @@ class FactorGraphBackend:
         scale of the keypoint) and ``dynamic_prob`` inflate the noise. Returns a factor handle.
         """
         self._require(kf_id, lm_id)
-        inflation = self._dynamic_inflation(dynamic_prob)
-        sigma_px = self.params.pixel_sigma * level_scale * inflation
-        u, v = float(uv[0]), float(uv[1])
-        if depth > 0:
-            noise = self._stereo_noise(round(sigma_px, 3), round(inflation, 3))
-            disparity = self.calibration.fx * self.calibration.baseline / depth
-            measurement = gtsam.StereoPoint2(u, u - disparity, v)
-            factor = gtsam.GenericStereoFactor3D(measurement, noise, X(kf_id), L(lm_id), self._K_stereo)
-        else:
-            noise = self._mono_noise(round(sigma_px, 3))
-            factor = gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(u, v), noise, X(kf_id), L(lm_id),
-                                                          self._K_mono)
+        factor = self._factors.observation(kf_id, lm_id, uv, depth, level_scale, dynamic_prob)
         return self._add_factor(factor)
 
     def add_relative_pose(self, kf_a: int, kf_b: int, T_ab: np.ndarray, sigma_t: float, sigma_r_deg: float,
@@ -164,15 +97,8 @@ class FactorGraphBackend:
         """
         self._require(kf_a)
         self._require(kf_b)
-        sigmas = np.r_[np.full(3, np.radians(sigma_r_deg)), np.full(3, sigma_t)]
-        noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
-        if kernel == "huber":
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(kernel_k), noise)
-        elif kernel == "cauchy":
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(kernel_k), noise)
-        elif kernel is not None:
-            raise BackendError(f"unknown kernel '{kernel}' (use 'huber', 'cauchy' or None)")
-        handle = self._add_factor(gtsam.BetweenFactorPose3(X(kf_a), X(kf_b), pose3(T_ab), noise))
+        factor = self._factors.relative_pose(kf_a, kf_b, T_ab, sigma_t, sigma_r_deg, kernel, kernel_k)
+        handle = self._add_factor(factor)
         self._relative[handle] = (kf_a, kf_b, np.array(T_ab, dtype=float))
         return handle
 
@@ -228,6 +154,10 @@ class FactorGraphBackend:
         except RuntimeError as exc:
             raise BackendError(f"iSAM2 update failed: {exc}") from exc
 
+    def optimize_all(self, iterations: Optional[int] = None) -> None:
+        """iSAM2 already holds the whole map's solution: ``iterations`` more updates, relinearising."""
+        self.update(extra_updates=iterations, relinearize=True)
+
     # --- estimates ------------------------------------------------------------------------------
     def keyframe_pose(self, kf_id: int) -> np.ndarray:
         if self._estimate is None or not self._estimate.exists(X(kf_id)):
@@ -249,6 +179,12 @@ class FactorGraphBackend:
         xyz = gtsam.utilities.extractPoint3(self._estimate) if self._estimate is not None else np.zeros((0, 3))
         return ids, np.asarray(xyz).reshape(-1, 3)
 
+    def sync(self) -> None:
+        """Solved in this process: every update is already applied."""
+
+    def close(self) -> None:
+        """Nothing held open."""
+
     @property
     def num_factors(self) -> int:
         return len(self._factor_index)
@@ -268,28 +204,3 @@ class FactorGraphBackend:
         self._next_handle += 1
         self._pending_factors[handle] = factor
         return handle
-
-    def _dynamic_inflation(self, p: float) -> float:
-        p = min(max(float(p), 0.0), 1.0)
-        return min(1.0 / max(1.0 - p, 1e-6), np.sqrt(self.params.max_dynamic_inflation))
-
-    def _stereo_noise(self, sigma_px: float, inflation: float):
-        key = ("stereo", sigma_px, inflation)
-        if key not in self._noise_cache:
-            # u_R = u_L - d shares u_L's pixel noise; the disparity adds the sensor's depth noise,
-            # sigma_d = fx*b*sigma_z/z^2 with sigma_z = c*z^2, which makes it depth-independent.
-            sigma_d = self.calibration.fx * self.calibration.baseline * self.params.depth_noise_coeff * inflation
-            s2 = sigma_px**2
-            cov = np.array([[s2, s2, 0.0], [s2, s2 + sigma_d**2, 0.0], [0.0, 0.0, s2]])
-            base = gtsam.noiseModel.Gaussian.Covariance(cov)
-            huber = gtsam.noiseModel.mEstimator.Huber.Create(self.params.huber_k)
-            self._noise_cache[key] = gtsam.noiseModel.Robust.Create(huber, base)
-        return self._noise_cache[key]
-
-    def _mono_noise(self, sigma_px: float):
-        key = ("mono", sigma_px)
-        if key not in self._noise_cache:
-            base = gtsam.noiseModel.Isotropic.Sigma(2, sigma_px)
-            huber = gtsam.noiseModel.mEstimator.Huber.Create(np.sqrt(5.991))
-            self._noise_cache[key] = gtsam.noiseModel.Robust.Create(huber, base)
-        return self._noise_cache[key]

@@ -16,7 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from backend.graph import BackendParams, FactorGraphBackend, StereoCalibration
+from backend.factors import BackendParams, StereoCalibration
+from backend.graph import FactorGraphBackend
+from backend.graph_protocol import GraphBackend
+from backend.window_graph import LocalWindowBackend, WindowParams
 from backend.map_store import SlamMap
 from slam.core.camera import PinholeCamera
 from slam.core.config import BackendConfig, KeyframeConfig
@@ -32,16 +35,25 @@ class KeyframeInsertion:
     culled_landmarks: int
 
 
+def build_graph(cfg: BackendConfig, calibration: StereoCalibration) -> GraphBackend:
+    """The graph back end the config names (``backend.optimizer``)."""
+    params = BackendParams.from_config(cfg)
+    if cfg.optimizer == "isam2":
+        return FactorGraphBackend(params, calibration)
+    return LocalWindowBackend(params, calibration, WindowParams.from_config(cfg))
+
+
 class LocalMapper:
     def __init__(self, cfg: BackendConfig, kf_cfg: KeyframeConfig, camera: PinholeCamera,
-                 dynamic_threshold: float = 0.5):
+                 dynamic_threshold: float = 0.5, graph: GraphBackend | None = None):
+        """``graph``: the graph to drive (default: the one ``cfg.optimizer`` names, in this process)."""
         self.cfg = cfg
         self.kf_cfg = kf_cfg
         self.camera = camera
         self.dynamic_threshold = dynamic_threshold
         self.map = SlamMap()
         calibration = StereoCalibration(camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline)
-        self.graph = FactorGraphBackend(BackendParams.from_config(cfg), calibration)
+        self.graph: GraphBackend = graph if graph is not None else build_graph(cfg, calibration)
 
     def insert_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, landmark_of_keypoint: np.ndarray,
                         colors: np.ndarray | None = None) -> KeyframeInsertion:
@@ -143,17 +155,43 @@ class LocalMapper:
             self.graph.add_landmark(int(lm_id), lm.xyz[lm_id])
         lm.in_graph[to_promote] = True
         obs = self.map.observations
-        self.add_factors(np.flatnonzero(np.isin(obs.lm, to_promote) & ~obs.in_graph))
+        rows = self.map.observation_rows(to_promote)
+        self.add_factors(rows[~obs.in_graph[rows]])
 
     def refresh_from_graph(self) -> None:
         """Copy the graph's current estimates into the map (after an update outside insert_keyframe)."""
         self._pull_estimates()
 
+    def finish(self, global_adjustment: bool = False) -> None:
+        """End of a run: every update applied (and with ``global_adjustment`` one adjustment of the whole
+        map), estimates in the map, the graph's worker (if any) stopped."""
+        self.graph.sync()
+        if global_adjustment and self.map.num_keyframes:
+            self.graph.optimize_all()
+        self._pull_estimates()
+        self.graph.close()
+
     def _pull_estimates(self) -> None:
+        """The graph's estimates into the map. A graph solved in another process answers for the
+        keyframes and landmarks it had when the update was sent; newer ones move rigidly with the newest
+        estimated keyframe (a loop correction must carry them too, as ORB-SLAM corrects the current
+        keyframe's neighbourhood). In process the graph answers for everything and nothing moves."""
         kf_ids, poses = self.graph.keyframe_poses()
+        if len(kf_ids) == 0:
+            return
+        last = int(kf_ids[-1])
+        correction = poses[-1] @ invert(self.map.kf_T_wc[last])
         self.map.kf_T_wc[kf_ids] = poses
+        newer = np.arange(last + 1, self.map.num_keyframes)
+        if len(newer):
+            self.map.kf_T_wc[newer] = correction @ self.map.kf_T_wc[newer]
         lm_ids, xyz = self.graph.landmark_positions()
-        self.map.landmarks.xyz[lm_ids] = xyz
+        lm = self.map.landmarks
+        lm.xyz[lm_ids] = xyz
+        unsolved = np.flatnonzero(lm.in_graph)
+        unsolved = unsolved[~np.isin(unsolved, lm_ids, assume_unique=True)]
+        if len(unsolved):
+            lm.xyz[unsolved] = lm.xyz[unsolved] @ correction[:3, :3].T + correction[:3, 3]
         self.map.refresh_anchored()
 
     def _cull_landmarks(self, kf_id: int) -> int:

@@ -27,6 +27,7 @@ from backend.local_mapping import LocalMapper
 from slam.core.config import load_config
 from slam.datasets import SyntheticSequence
 from slam.datasets.synthetic import look_rotation
+from slam.core.geometry import invert, make_pose, so3_exp, transform_points
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -514,3 +515,77 @@ def write_realsense_bag(path: Path, seq: SyntheticSequence, depth_camera: Option
                 td = t + RS_DEPTH_DELAY_S
                 put(f"{RS_DEPTH}/image/data", _image(types, header(td, frame.index), raw, "mono16"), td)
     return path
+
+
+# --- a ring of keyframes for the graph back ends (tests/test_window_graph.py, test_graph_process.py) ----
+
+RING_FX, RING_CX, RING_CY = 525.0, 319.5, 239.5
+
+
+def _ring_calibration():
+    from backend.factors import StereoCalibration
+
+    return StereoCalibration(RING_FX, RING_FX, RING_CX, RING_CY, 0.08)
+
+
+RING_CALIBRATION = _ring_calibration()
+
+
+def ring_poses(n: int, radius: float = 2.0) -> np.ndarray:
+    """Cameras on a circle looking outwards, one every 360/n degrees: the last one meets the first."""
+    poses = []
+    for k in range(n):
+        yaw = 2 * np.pi * k / n
+        R = so3_exp([0.0, yaw, 0.0])
+        poses.append(make_pose(R, R @ np.array([0.0, 0.0, -radius])))
+    return np.array(poses)
+
+
+def wall_points(poses: np.ndarray, rng: np.random.Generator, per_keyframe: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """Points 2-3 m in front of each camera; returns (points, index of the keyframe that made each)."""
+    pts, owner = [], []
+    for k, T in enumerate(poses):
+        local = np.column_stack([rng.uniform(-1.0, 1.0, per_keyframe), rng.uniform(-0.7, 0.7, per_keyframe),
+                                 rng.uniform(2.0, 3.0, per_keyframe)])
+        pts.append(transform_points(T, local))
+        owner += [k] * per_keyframe
+    return np.vstack(pts), np.array(owner)
+
+
+def observe(graph, kf: int, T: np.ndarray, ids: np.ndarray, points: np.ndarray) -> None:
+    Xc = transform_points(invert(T), points[ids])
+    ok = Xc[:, 2] > 0.3
+    uv = np.column_stack([RING_FX * Xc[:, 0] / Xc[:, 2] + RING_CX, RING_FX * Xc[:, 1] / Xc[:, 2] + RING_CY])
+    inside = ok & (uv[:, 0] > 0) & (uv[:, 0] < 640) & (uv[:, 1] > 0) & (uv[:, 1] < 480)
+    for j, p, z in zip(ids[inside], uv[inside], Xc[inside, 2]):
+        graph.add_observation(kf, int(j), p, depth=float(z))
+
+
+def drifted(poses: np.ndarray, yaw_per_step_deg: float) -> np.ndarray:
+    """Odometry-like guesses: every step's motion turned a little more than the truth."""
+    out = [poses[0]]
+    extra = make_pose(so3_exp([0.0, np.radians(yaw_per_step_deg), 0.0]), [0.0, 0.0, 0.0])
+    for k in range(1, len(poses)):
+        out.append(out[-1] @ extra @ invert(poses[k - 1]) @ poses[k])
+    return np.array(out)
+
+
+def run_ring(graph, n: int, seed: int = 0, drift_deg: float = 0.0):
+    """Keyframes round the ring as a SLAM run adds them: each sees its own points and its two
+    predecessors', one update per keyframe. With ``drift_deg`` the measurements are those of a drifted
+    ring (every step turned a little more): consistent among themselves, so only a loop reveals it.
+    Returns (true poses, true points, keyframe that made each point)."""
+    poses = ring_poses(n)
+    seen = drifted(poses, drift_deg)              # the world as the measurements describe it
+    local, owner = wall_points(np.tile(np.eye(4), (n, 1, 1)), np.random.default_rng(seed))
+    points = np.vstack([transform_points(poses[k], local[owner == k]) for k in range(n)])
+    seen_points = np.vstack([transform_points(seen[k], local[owner == k]) for k in range(n)])
+    for k in range(n):
+        graph.add_keyframe(k, seen[k])
+        if k:
+            graph.add_relative_pose(k - 1, k, invert(seen[k - 1]) @ seen[k], 0.05, 2.0)
+        for j in np.flatnonzero(owner == k):
+            graph.add_landmark(int(j), seen_points[j])
+        observe(graph, k, seen[k], np.flatnonzero((owner >= k - 2) & (owner <= k)), seen_points)
+        graph.update()
+    return poses, points, owner

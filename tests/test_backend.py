@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from backend.graph import BackendError, BackendParams, FactorGraphBackend, StereoCalibration
+from backend.window_graph import LocalWindowBackend
 from backend.local_mapping import LocalMapper
 from slam.core.camera import PinholeCamera
 from slam.core.config import BackendConfig, KeyframeConfig
@@ -66,6 +67,14 @@ def perturb(T: np.ndarray, rng: np.random.Generator, sigma_t: float = 0.03, sigm
     return T @ se3_exp(xi)
 
 
+@pytest.fixture(params=[FactorGraphBackend, LocalWindowBackend], ids=["isam2", "window"])
+def graph_type(request):
+    """Both graph back ends answer the same calls and must reach the same solutions here: the first
+    update's window holds every keyframe added since the last one (all 8), and later updates adjust 6
+    of them against the other 2 held fixed at values already solved."""
+    return request.param
+
+
 @pytest.fixture(scope="module")
 def scene() -> tuple[np.ndarray, np.ndarray]:
     poses = true_poses()
@@ -74,12 +83,12 @@ def scene() -> tuple[np.ndarray, np.ndarray]:
 
 def build_graph(poses: np.ndarray, points: np.ndarray, seed: int = 1, px_noise: float = 0.0,
                 depth_noise: float = 0.0, stereo_keyframes=None, params: BackendParams | None = None,
-                ) -> FactorGraphBackend:
+                graph_type=FactorGraphBackend) -> FactorGraphBackend:
     """Keyframes with noisy guesses (3 cm, 2 deg; keyframe 0 exact, it carries the gauge prior),
     landmarks with 5 cm noisy guesses, and one observation per (keyframe, point) computed from the
     true poses. ``stereo_keyframes``: keyframes whose observations carry depth (default all)."""
     rng = np.random.default_rng(seed)
-    graph = FactorGraphBackend(params or SOLVE, CAL)
+    graph = graph_type(params or SOLVE, CAL)
     for k, T in enumerate(poses):
         graph.add_keyframe(k, T if k == 0 else perturb(T, rng))
     for j, X in enumerate(points):
@@ -138,9 +147,9 @@ def test_backend_imports_without_frontend():
 
 # --- FactorGraphBackend: accuracy -------------------------------------------------------------------
 
-def test_noise_free_stereo_recovers_exact_poses_and_landmarks(scene):
+def test_noise_free_stereo_recovers_exact_poses_and_landmarks(scene, graph_type):
     poses, points = scene
-    graph = build_graph(poses, points)
+    graph = build_graph(poses, points, graph_type=graph_type)
     graph.update()
     t_err, r_err = pose_errors(graph, poses)
     assert t_err < 1e-4 and r_err < 1e-2
@@ -150,9 +159,9 @@ def test_noise_free_stereo_recovers_exact_poses_and_landmarks(scene):
     np.testing.assert_allclose(graph.keyframe_pose(3), poses[3], atol=1e-4)
 
 
-def test_noisy_stereo_recovers_poses_within_5mm_and_landmarks_within_1cm(scene):
+def test_noisy_stereo_recovers_poses_within_5mm_and_landmarks_within_1cm(scene, graph_type):
     poses, points = scene
-    graph = build_graph(poses, points, seed=10, px_noise=0.3, depth_noise=0.0005)
+    graph = build_graph(poses, points, seed=10, px_noise=0.3, depth_noise=0.0005, graph_type=graph_type)
     graph.update()
     t_err, r_err = pose_errors(graph, poses)
     assert t_err < 0.005, t_err
@@ -160,26 +169,27 @@ def test_noisy_stereo_recovers_poses_within_5mm_and_landmarks_within_1cm(scene):
     assert landmark_errors(graph, points).max() < 0.01
 
 
-def test_mono_observations_work_when_the_landmark_has_a_stereo_observation(scene):
+def test_mono_observations_work_when_the_landmark_has_a_stereo_observation(scene, graph_type):
     poses, points = scene
-    graph = build_graph(poses, points, stereo_keyframes={0})  # depth only from keyframe 0
+    graph = build_graph(poses, points, stereo_keyframes={0}, graph_type=graph_type)  # depth from keyframe 0 only
     graph.update()
     t_err, _ = pose_errors(graph, poses)
     assert t_err < 1e-4
     assert landmark_errors(graph, points).max() < 1e-4
 
-    noisy = build_graph(poses, points, seed=11, px_noise=0.3, depth_noise=0.0005, stereo_keyframes={0, 4})
+    noisy = build_graph(poses, points, seed=11, px_noise=0.3, depth_noise=0.0005, stereo_keyframes={0, 4},
+                        graph_type=graph_type)
     noisy.update()
     assert pose_errors(noisy, poses)[0] < 0.005
     errors = landmark_errors(noisy, points)  # depth from 2 of 8 keyframes: the depth noise averages less
     assert np.sqrt(np.mean(errors**2)) < 0.01 and errors.max() < 0.02
 
 
-def test_keyframe_and_landmark_ids_need_not_be_contiguous_or_sorted():
+def test_keyframe_and_landmark_ids_need_not_be_contiguous_or_sorted(graph_type):
     poses = true_poses(4)
     points = visible_points(poses, 60, np.random.default_rng(5))
     kf_ids, lm_ids = [7, 2, 30, 11], list(range(1000, 1060))[::-1]
-    graph = FactorGraphBackend(BackendParams(), CAL)
+    graph = graph_type(BackendParams(), CAL)
     for kf, T in zip(kf_ids, poses):
         graph.add_keyframe(kf, T)
     for lm, X in zip(lm_ids, points):
@@ -202,10 +212,10 @@ def test_keyframe_and_landmark_ids_need_not_be_contiguous_or_sorted():
 
 # --- relative poses and robust kernels ---------------------------------------------------------------
 
-def test_relative_pose_alone_places_a_keyframe(scene):
+def test_relative_pose_alone_places_a_keyframe(scene, graph_type):
     """A keyframe without observations is determined by its relative-pose factor only."""
     poses, points = scene
-    graph = build_graph(poses, points)
+    graph = build_graph(poses, points, graph_type=graph_type)
     T_extra = poses[-1] @ make_pose(so3_exp(np.radians([0.0, 5.0, 0.0])), [0.2, 0.0, 0.05])
     graph.add_keyframe(100, perturb(T_extra, np.random.default_rng(3)))
     handle = graph.add_relative_pose(N_KF - 1, 100, invert(poses[-1]) @ T_extra, sigma_t=0.01, sigma_r_deg=0.5,
@@ -217,9 +227,9 @@ def test_relative_pose_alone_places_a_keyframe(scene):
     assert list(ids) == list(range(N_KF)) + [100]
 
 
-def test_consistent_relative_pose_keeps_the_solution(scene):
+def test_consistent_relative_pose_keeps_the_solution(scene, graph_type):
     poses, points = scene
-    graph = build_graph(poses, points)
+    graph = build_graph(poses, points, graph_type=graph_type)
     graph.update()
     before = graph.keyframe_poses()[1]
     for kernel in ("huber", "cauchy", None):
@@ -235,9 +245,9 @@ def _wrong_loop(poses: np.ndarray) -> np.ndarray:
     return T
 
 
-def test_cauchy_kernel_ignores_a_wrong_loop_and_removal_restores(scene):
+def test_cauchy_kernel_ignores_a_wrong_loop_and_removal_restores(scene, graph_type):
     poses, points = scene
-    graph = build_graph(poses, points)
+    graph = build_graph(poses, points, graph_type=graph_type)
     graph.update()
     base = graph.keyframe_poses()[1]
     n_factors = graph.num_factors
@@ -252,10 +262,10 @@ def test_cauchy_kernel_ignores_a_wrong_loop_and_removal_restores(scene):
     assert pose_errors(graph, poses)[0] < 1e-4
 
 
-def test_wrong_loop_without_kernel_does_move_the_solution_and_removal_restores(scene):
+def test_wrong_loop_without_kernel_does_move_the_solution_and_removal_restores(scene, graph_type):
     """The same wrong constraint without a robust kernel: shows the previous test has teeth."""
     poses, points = scene
-    graph = build_graph(poses, points)
+    graph = build_graph(poses, points, graph_type=graph_type)
     graph.update()
     base = graph.keyframe_poses()[1]
     handle = graph.add_relative_pose(2, 6, _wrong_loop(poses), sigma_t=0.002, sigma_r_deg=0.1, kernel=None)
@@ -266,9 +276,9 @@ def test_wrong_loop_without_kernel_does_move_the_solution_and_removal_restores(s
     assert max_pose_change(graph.keyframe_poses()[1], base) < 1e-3
 
 
-def test_remove_factors_before_update_drops_the_pending_factor(scene):
+def test_remove_factors_before_update_drops_the_pending_factor(scene, graph_type):
     poses, points = scene
-    graph = build_graph(poses, points)
+    graph = build_graph(poses, points, graph_type=graph_type)
     graph.update()
     base = graph.keyframe_poses()[1]
     n_factors = graph.num_factors
@@ -281,17 +291,17 @@ def test_remove_factors_before_update_drops_the_pending_factor(scene):
 
 # --- dynamic probability --------------------------------------------------------------------------
 
-def test_dynamic_probability_reduces_the_influence_of_a_moving_point(scene):
+def test_dynamic_probability_reduces_the_influence_of_a_moving_point(scene, graph_type):
     """20 points that jump 0.5 m between keyframes 3 and 4: with dynamic_prob=0.99 on their
     observations they pull the keyframes far less than with dynamic_prob=0."""
     poses, points = scene
     moving = visible_points(poses, 20, np.random.default_rng(42))
-    reference = build_graph(poses, points)
+    reference = build_graph(poses, points, graph_type=graph_type)
     reference.update(extra_updates=3)
     base = reference.keyframe_poses()[1]
 
     def solve(dynamic_prob: float) -> float:
-        graph = build_graph(poses, points)
+        graph = build_graph(poses, points, graph_type=graph_type)
         for j, X in enumerate(moving):
             graph.add_landmark(500 + j, X)
             for k, T in enumerate(poses):
@@ -308,8 +318,8 @@ def test_dynamic_probability_reduces_the_influence_of_a_moving_point(scene):
 # --- errors -----------------------------------------------------------------------------------------
 
 @pytest.fixture
-def small_graph() -> FactorGraphBackend:
-    graph = FactorGraphBackend(BackendParams(), CAL)
+def small_graph(graph_type) -> FactorGraphBackend:
+    graph = graph_type(BackendParams(), CAL)
     graph.add_keyframe(0, np.eye(4))
     graph.add_keyframe(1, make_pose(np.eye(3), [0.1, 0.0, 0.0]))
     graph.add_landmark(5, np.array([0.0, 0.0, 2.0]))
@@ -533,9 +543,9 @@ def test_local_mapper_culls_single_view_landmarks_after_cull_after_keyframes(map
     assert not np.isin(pts.ids, single_kf0).any()
 
 
-def test_remove_factors_rejects_unknown_handles(scene):
+def test_remove_factors_rejects_unknown_handles(scene, graph_type):
     poses, points = scene
-    graph = build_graph(poses, points)
+    graph = build_graph(poses, points, graph_type=graph_type)
     graph.update()
     with pytest.raises(BackendError, match="unknown factor handle"):
         graph.remove_factors([10**9])

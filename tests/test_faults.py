@@ -217,6 +217,51 @@ def test_sigkill_leaves_only_complete_files(tum_folder, tmp_path, moment):
         assert not {"trajectory.txt", "summary.json", "graph.g2o"} & names, "no final file before the end"
 
 
+def session_processes(sid: int) -> list[int]:
+    """Live processes of session ``sid`` (the run, its forkserver and its mapping worker all stay in
+    the session they were started in)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":   # fields after the name: state, ppid, pgrp, session
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
+def test_ctrl_c_at_a_terminal_stops_every_process_and_writes_complete_files(tum_folder, tmp_path):
+    """A terminal's Ctrl-C reaches the whole process group, the mapping worker included: exit 130,
+    complete final files (the worker finished the last updates first), and no process left behind."""
+    out, err = tmp_path / "out", tmp_path / "stderr.txt"
+    with err.open("w") as stderr:
+        process = subprocess.Popen([sys.executable, "-m", "slam.cli", "run", str(tum_folder), "-o", str(out), "-q",
+                                    "--set", "output.report=false"], cwd=REPO, stdout=subprocess.DEVNULL,
+                                   stderr=stderr, start_new_session=True,
+                                   preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        wait_for(lambda: online_frames(out) >= 4, process, 120, "4 frames were processed")
+        assert len(session_processes(process.pid)) >= 2, "the mapping worker runs beside the tracking process"
+        os.killpg(process.pid, signal.SIGINT)
+        assert process.wait(timeout=120) == 130, err.read_text()
+    finally:
+        if process.poll() is None:
+            process.kill()
+    deadline = time.monotonic() + 10
+    while session_processes(process.pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert session_processes(process.pid) == [], "a process of the run outlived it"
+    assert "Traceback" not in err.read_text()
+    summary = read_summary(out)
+    assert summary["interrupted"] is True and 4 <= summary["frames"] < TUM_FRAMES
+    names = check_results_folder(out)
+    assert {"trajectory.txt", "keyframes.txt", "summary.json", "graph.g2o", "map.npz"} <= names, names
+    final_poses, final_lost = frame_lines(out / "trajectory.txt")
+    assert len(final_poses) + len(final_lost) == summary["frames"]
+
+
 # --- 3. corrupt files ----------------------------------------------------------------------------------
 
 def test_truncated_png_and_zero_byte_depth_are_skipped_by_name(tum_folder, tmp_path):

@@ -139,6 +139,24 @@ class BackendConfig(ConfigSection):
 
     backend.graph.BackendParams takes its defaults from here (one source of truth)."""
 
+    worker_process: bool = True
+    """Solve the graph in a worker process so tracking does not wait for it (slam/runtime/graph_process.py);
+    results are applied at the next keyframe, so runs stay deterministic. False: solve in line."""
+    optimizer: Literal["window", "isam2"] = "window"
+    """"window": local bundle adjustment around each new keyframe, loops through a pose graph
+    (backend/window_graph.py; cost per keyframe flat as the map grows). "isam2": one iSAM2 graph over the
+    whole map (backend/graph.py; cost per keyframe grows with the map and its loops)."""
+    window_keyframes: int = Field(6, ge=2)
+    """Keyframes adjusted per new keyframe (the newest and its most covisible); a window needs two."""
+    window_fixed_keyframes: int = Field(10, ge=1)
+    """Keyframes outside the window held fixed (those seeing most of its landmarks); the rest's views of
+    those landmarks are left out of that adjustment, so revisiting a place does not grow its cost."""
+    window_iterations: int = Field(10, ge=1)
+    """Levenberg-Marquardt iterations of a window (ORB-SLAM's local BA: 5 + 10 around outlier removal)."""
+    essential_min_shared: int = Field(100, ge=1)
+    """Loop correction: keyframe pairs sharing this many landmarks are tied in the pose graph (ORB-SLAM: 100)."""
+    final_global_ba: bool = False
+    """One bundle adjustment of the whole map after the last frame (its cost grows with the map)."""
     relinearize_threshold: float = Field(0.01, gt=0)
     relinearize_skip: int = Field(5, ge=1)   # relinearise every n-th update (gtsam needs n >= 1)
     extra_updates: int = Field(1, ge=0)

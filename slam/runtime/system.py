@@ -17,6 +17,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from backend.factors import StereoCalibration
 from backend.local_mapping import LocalMapper
 from backend.loop_closing import LoopCloser
 from backend.map_store import SlamMap
@@ -34,6 +35,7 @@ from slam.core.config import SlamConfig
 from slam.core.frame import FeatureFrame, MapPoints
 from slam.core.geometry import invert, pose_distance
 from slam.runtime.frame_log import FrameLog
+from slam.runtime.graph_process import GraphProcess, GraphSpec
 from slam.runtime.inputs import check_inputs, clean_depth
 from slam.core.timing import ModuleTimer
 
@@ -73,6 +75,11 @@ class _WholeMapView(_MapView):
         return self._mapper.map.map_points(np.arange(len(self._mapper.map.landmarks)))
 
 
+def _graph_process(config: SlamConfig, camera: PinholeCamera) -> GraphProcess:
+    calibration = StereoCalibration(camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline)
+    return GraphProcess(GraphSpec(config.backend, calibration))
+
+
 class System:
     def __init__(self, config: SlamConfig, dynamic_filter: Optional[DynamicFilter] = None, sequence_name: str = "",
                  detector=None, prior_map: Optional[SlamMap] = None, localization_only: bool = False,
@@ -91,7 +98,10 @@ class System:
         self.dynamic_filter = dynamic_filter or build_dynamic_filter(config, self.camera, self.timer, sequence_name,
                                                                      detector)
         self.tracker = Tracker(config.tracking, self.camera)
-        self.mapper = LocalMapper(config.backend, config.keyframes, self.camera, config.tracking.dynamic_threshold)
+        # A worker process only where the graph will be solved: a fixed prior map is only read.
+        graph = _graph_process(config, self.camera) if config.backend.worker_process and not localization_only else None
+        self.mapper = LocalMapper(config.backend, config.keyframes, self.camera, config.tracking.dynamic_threshold,
+                                  graph)
         if prior_map is not None:
             self.mapper.map = prior_map
         self._map_view = _MapView(self.mapper, config.tracking.local_keyframes, config.tracking.covisible_per_keyframe)
@@ -100,6 +110,7 @@ class System:
         self._last_keyframe_frame = -1
         self._reference_kf = -1
         self.last_frame: Optional[FeatureFrame] = None   # features (with dynamic_prob) of the last frame
+        self._closed = False
         self._build_place_recognition(vocabulary, prior_words or {})
         cv2.setRNGSeed(config.seed)  # PnP-RANSAC draws from OpenCV's global generator
 
@@ -196,8 +207,15 @@ class System:
                  self.loop_closer.index, self.loop_closer.loops)
 
     def close(self) -> None:
-        """Release what the components hold open (e.g. save the detection cache)."""
-        self.dynamic_filter.close()
+        """End of the run: the graph's last updates (and the final global adjustment if configured) are
+        applied to the map before anything reads it, the mapping worker stops, and the components release
+        what they hold open (e.g. save the detection cache). Safe to call twice."""
+        try:
+            if not self.localization_only and not self._closed:
+                self._closed = True
+                self.mapper.finish(self.config.backend.final_global_ba)
+        finally:
+            self.dynamic_filter.close()
 
     @property
     def num_keyframes(self) -> int:
@@ -270,6 +288,10 @@ class System:
                                                         self._keypoint_colors(frame))
             self.tracker.adopt_keyframe_landmarks(self.mapper.map.keyframes[insertion.kf_id].landmark_of_keypoint)
             self._reference_kf, self._last_keyframe_frame = insertion.kf_id, len(self._frames)
+            # The frame is the keyframe: it takes the keyframe's estimate, which a graph result applied
+            # during the insertion may have moved (a loop correction arriving from the worker).
+            T_wc = self.mapper.map.kf_T_wc[insertion.kf_id].copy()
+            self.tracker.rebase(invert(T_wc))
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
         self._frames.add(frame.timestamp, self._reference_kf, T_kf_c)
         if is_keyframe:

@@ -1,0 +1,297 @@
+"""The back end's solver in its own process, so tracking does not wait for it.
+
+GTSAM's Python bindings hold the GIL while they solve (a Python thread runs at ~2 % of its speed during
+an LM solve in another thread), so a thread would not take the solve off the tracking path; a process
+does. ``GraphProcess`` is a ``backend.graph_protocol.GraphBackend``: local mapping and loop closing call
+it exactly as they call the graph itself. Each call is recorded as a compact command; ``update()`` sends
+the batch to the worker and returns at once.
+
+Determinism by construction: the result of update *n* is applied when update *n + 1* is called (the
+next keyframe), waiting there only if the worker is not done yet, and at ``sync()``. Which estimates the
+tracker sees therefore depends on the frame sequence only, never on how the OS schedules the two
+processes: the same input and config give the same trajectory byte for byte. Until a result arrives,
+new keyframes and landmarks keep the poses tracking gave them, as they would in ORB-SLAM while its local
+bundle adjustment runs.
+
+Factor handles are counted here the way the graph counts them (one per factor, priors included) and the
+worker checks that they agree, so removal by handle needs no round trip. A loop factor the worker has not
+solved yet has no residual to report: ``relative_pose_error`` says (0, 0) until its first result comes back.
+
+Failures: an exception in the worker comes back as a ``BackendError`` naming the command that failed; a
+worker that dies is reported with its exit code. The worker ignores SIGINT (Ctrl-C is the main
+process's to handle: it still syncs and writes complete files), stops when its pipe closes, and is a
+daemon, so no process outlives the run.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import signal
+import traceback
+from dataclasses import dataclass
+from typing import Iterable, Optional
+
+import numpy as np
+
+from backend.factors import BackendError, BackendParams, StereoCalibration
+from backend.graph_protocol import GraphBackend
+from backend.local_mapping import build_graph
+from slam.core.config import BackendConfig
+
+
+@dataclass(frozen=True)
+class GraphSpec:
+    """Everything the worker needs to build the graph the main process would have built."""
+
+    config: BackendConfig
+    calibration: StereoCalibration
+
+    def build(self) -> GraphBackend:
+        return build_graph(self.config, self.calibration)
+
+
+def _serve(spec: GraphSpec, conn) -> None:
+    """The worker: apply command batches in order, answer each with the estimates it produced."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})   # blocked since before it started
+    graph = spec.build()
+    while True:
+        try:
+            batch = conn.recv()
+        except (EOFError, OSError):   # the main process is gone or closed the pipe: stop
+            return
+        if batch is None:
+            return
+        step = "?"
+        try:
+            for command in batch:
+                step = command[0]
+                expected = _apply(graph, command)
+                if expected is not None and expected[0] != expected[1]:
+                    raise BackendError(f"factor handle {expected[0]} where the main process counted {expected[1]}")
+            conn.send(("ok", graph.keyframe_poses(), graph.landmark_positions()))
+        except Exception as exc:   # noqa: BLE001 - every failure goes back to the main process, named
+            conn.send(("error", step, f"{type(exc).__name__}: {exc}", traceback.format_exc()))
+
+
+def _apply(graph: GraphBackend, command: tuple):
+    """One recorded call; returns (handle the graph gave, handle the main process counted) for factors."""
+    kind = command[0]
+    if kind == "keyframe":
+        graph.add_keyframe(command[1], command[2])
+    elif kind == "landmark":
+        graph.add_landmark(command[1], command[2])
+    elif kind == "observation":
+        return graph.add_observation(*command[1:-1]), command[-1]
+    elif kind == "relative":
+        return graph.add_relative_pose(*command[1:-1]), command[-1]
+    elif kind == "remove":
+        graph.remove_factors(command[1])
+    elif kind == "update":
+        graph.update(extra_updates=command[1], relinearize=command[2])
+    elif kind == "optimize_all":
+        graph.optimize_all(command[1])
+    else:
+        raise BackendError(f"unknown command {kind!r}")
+    return None
+
+
+class GraphProcess:
+    """A GraphBackend whose solving runs in a worker process (see the module docstring)."""
+
+    def __init__(self, spec: GraphSpec):
+        self.spec = spec
+        self._landmark_prior = BackendParams.from_config(spec.config).landmark_prior_sigma > 0
+        # forkserver: the worker is forked from a clean server process (not from this one, whose
+        # detector and OpenCV threads a fork would copy mid-state), and the server has the back end's
+        # modules loaded once, so a worker starts in milliseconds.
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(["slam.runtime.graph_process"])
+        self._conn, child = ctx.Pipe()
+        self._process = ctx.Process(target=_serve, args=(spec, child), name="dynslam-mapping", daemon=True)
+        # SIGINT stays blocked from before the (first) server starts until the worker ignores it: a Ctrl-C
+        # during start-up must not kill the worker that the main process needs to finish the run. The
+        # mask passes to the server (fork + exec) and from it to each worker; here it is restored at once
+        # (a Ctrl-C in between is delivered then, not lost).
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            self._process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        child.close()
+        self._batch: list[tuple] = []
+        self._in_flight = False
+        self._keyframes: set[int] = set()
+        self._landmarks: set[int] = set()
+        self._live: set[int] = set()
+        self._relative: dict[int, tuple[int, int, np.ndarray]] = {}
+        self._solved_relative: set[int] = set()   # relative factors included in an applied result
+        self._sent_relative: set[int] = set()     # ... and those in the batch now being solved
+        self._next_handle = 0
+        self._kf_ids, self._kf_poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        self._lm_ids, self._lm_xyz = np.zeros(0, np.int64), np.zeros((0, 3))
+        self.waits = 0          # updates that found the worker still busy (tracking waited)
+
+    # --- variables ------------------------------------------------------------------------------
+    def add_keyframe(self, kf_id: int, T_wc_guess: np.ndarray) -> None:
+        if kf_id in self._keyframes:
+            raise BackendError(f"keyframe {kf_id} already exists")
+        if not self._keyframes:
+            self._next_handle += 1   # the first keyframe's prior
+            self._live.add(self._next_handle - 1)
+        self._keyframes.add(kf_id)
+        self._batch.append(("keyframe", int(kf_id), np.asarray(T_wc_guess, float)))
+
+    def add_landmark(self, lm_id: int, xyz_guess: np.ndarray) -> None:
+        if lm_id in self._landmarks:
+            raise BackendError(f"landmark {lm_id} already exists")
+        if self._landmark_prior:
+            self._live.add(self._next_handle)
+            self._next_handle += 1
+        self._landmarks.add(lm_id)
+        self._batch.append(("landmark", int(lm_id), np.asarray(xyz_guess, float)))
+
+    def has_keyframe(self, kf_id: int) -> bool:
+        return kf_id in self._keyframes
+
+    def has_landmark(self, lm_id: int) -> bool:
+        return lm_id in self._landmarks
+
+    # --- factors --------------------------------------------------------------------------------
+    def add_observation(self, kf_id: int, lm_id: int, uv, depth: float = 0.0, level_scale: float = 1.0,
+                        dynamic_prob: float = 0.0) -> int:
+        self._require(kf_id, lm_id)
+        handle = self._new_handle()
+        self._batch.append(("observation", int(kf_id), int(lm_id), (float(uv[0]), float(uv[1])), float(depth),
+                            float(level_scale), float(dynamic_prob), handle))
+        return handle
+
+    def add_relative_pose(self, kf_a: int, kf_b: int, T_ab: np.ndarray, sigma_t: float, sigma_r_deg: float,
+                          kernel: Optional[str] = "huber", kernel_k: float = 1.0) -> int:
+        self._require(kf_a)
+        self._require(kf_b)
+        if kernel not in ("huber", "cauchy", None):
+            raise BackendError(f"unknown kernel '{kernel}' (use 'huber', 'cauchy' or None)")
+        handle = self._new_handle()
+        T_ab = np.array(T_ab, dtype=float)
+        self._relative[handle] = (int(kf_a), int(kf_b), T_ab)
+        self._batch.append(("relative", int(kf_a), int(kf_b), T_ab, float(sigma_t), float(sigma_r_deg), kernel,
+                            float(kernel_k), handle))
+        return handle
+
+    def relative_pose_error(self, handle: int) -> tuple[float, float]:
+        """Against the last applied estimate; (0, 0) while the factor's first solve is still out."""
+        if handle not in self._relative:
+            raise BackendError(f"factor handle {handle} is not a live relative-pose factor")
+        if handle not in self._solved_relative:
+            return 0.0, 0.0
+        a, b, T_ab = self._relative[handle]
+        E = np.linalg.solve(T_ab, np.linalg.solve(self.keyframe_pose(a), self.keyframe_pose(b)))
+        angle = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        return float(np.linalg.norm(E[:3, 3])), float(angle)
+
+    def remove_factors(self, handles: Iterable[int]) -> None:
+        handles = [int(h) for h in handles]
+        unknown = [h for h in handles if h not in self._live]
+        if unknown:
+            raise BackendError(f"unknown factor handle(s) {unknown} (already removed?)")
+        for h in handles:
+            self._live.discard(h)
+            self._relative.pop(h, None)
+        self._batch.append(("remove", handles))
+
+    # --- solving --------------------------------------------------------------------------------
+    def update(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
+        """Apply the previous update's result (waiting only if it is not ready), then send this batch."""
+        self._collect()
+        self._send(("update", extra_updates, relinearize))
+
+    def optimize_all(self, iterations: Optional[int] = None) -> None:
+        """Synchronous: the whole-map adjustment, for the end of a run."""
+        self._collect()
+        self._send(("optimize_all", iterations))
+        self._collect()
+
+    def sync(self) -> None:
+        """Wait for the update in flight and apply it (the end of a run, or a test)."""
+        self._collect()
+
+    def close(self) -> None:
+        """Stop the worker (after ``sync()`` if its last result is wanted); safe to call twice."""
+        if self._process is None:
+            return
+        try:
+            self._conn.send(None)
+        except (BrokenPipeError, OSError):
+            pass
+        self._conn.close()
+        self._process.join(timeout=10)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join()
+        self._process = None
+
+    def __del__(self):
+        if getattr(self, "_process", None) is not None and self._process.is_alive():
+            self._process.kill()
+
+    # --- estimates ------------------------------------------------------------------------------
+    def keyframe_pose(self, kf_id: int) -> np.ndarray:
+        i = np.searchsorted(self._kf_ids, kf_id)
+        if i >= len(self._kf_ids) or self._kf_ids[i] != kf_id:
+            raise BackendError(f"keyframe {kf_id} has no estimate yet (call update())")
+        return self._kf_poses[i].copy()
+
+    def keyframe_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._kf_ids.copy(), self._kf_poses.copy()
+
+    def landmark_positions(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._lm_ids.copy(), self._lm_xyz.copy()
+
+    @property
+    def num_factors(self) -> int:
+        return len(self._live)
+
+    # --- helpers --------------------------------------------------------------------------------
+    def _send(self, command: tuple) -> None:
+        batch, self._batch = self._batch + [command], []
+        self._sent_relative = set(self._relative)
+        try:
+            self._conn.send(batch)
+        except (BrokenPipeError, OSError) as exc:
+            raise self._died() from exc
+        self._in_flight = True
+
+    def _collect(self) -> None:
+        if not self._in_flight:
+            return
+        if not self._conn.poll(0):
+            self.waits += 1
+        while not self._conn.poll(1.0):
+            if self._process is None or not self._process.is_alive():
+                raise self._died()
+        try:
+            reply = self._conn.recv()
+        except (EOFError, OSError) as exc:
+            raise self._died() from exc
+        self._in_flight = False
+        if reply[0] == "error":
+            _, step, message, trace = reply
+            raise BackendError(f"mapping worker failed in '{step}': {message}\n{trace}")
+        _, (self._kf_ids, self._kf_poses), (self._lm_ids, self._lm_xyz) = reply
+        self._solved_relative = self._sent_relative & set(self._relative)
+
+    def _died(self) -> BackendError:
+        code = None if self._process is None else self._process.exitcode
+        return BackendError(f"the mapping worker process exited unexpectedly (exit code {code})")
+
+    def _require(self, kf_id: int, lm_id: Optional[int] = None) -> None:
+        if kf_id not in self._keyframes:
+            raise BackendError(f"unknown keyframe {kf_id}: add_keyframe() it first")
+        if lm_id is not None and lm_id not in self._landmarks:
+            raise BackendError(f"unknown landmark {lm_id}: add_landmark() it first")
+
+    def _new_handle(self) -> int:
+        handle = self._next_handle
+        self._next_handle += 1
+        self._live.add(handle)
+        return handle

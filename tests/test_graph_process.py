@@ -1,0 +1,148 @@
+"""GraphProcess: the graph solved in a worker process, with results applied at fixed points.
+
+Same calls, same numbers as the graph in process (once synced); results lag by exactly one update;
+a failure in the worker or a dead worker is a clear BackendError; close() leaves no process behind."""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from backend.factors import BackendError
+from backend.local_mapping import build_graph
+from conftest import RING_CALIBRATION, run_ring
+from slam.core.config import BackendConfig
+from slam.runtime.graph_process import GraphProcess, GraphSpec
+
+
+def _spec(**fields) -> GraphSpec:
+    return GraphSpec(BackendConfig(**fields), RING_CALIBRATION)
+
+
+@pytest.fixture
+def process_graph():
+    graph = GraphProcess(_spec(window_keyframes=4))
+    yield graph
+    graph.close()
+
+
+def test_same_estimates_as_in_process_once_synced(process_graph):
+    inline = build_graph(BackendConfig(window_keyframes=4), RING_CALIBRATION)
+    run_ring(inline, 10, drift_deg=0.3)
+    run_ring(process_graph, 10, drift_deg=0.3)
+    process_graph.sync()
+    for a, b in zip(inline.keyframe_poses() + inline.landmark_positions(),
+                    process_graph.keyframe_poses() + process_graph.landmark_positions()):
+        np.testing.assert_array_equal(a, b)   # the same solver on the same calls: bit for bit
+    assert process_graph.num_factors == inline.num_factors
+
+
+def test_results_arrive_one_update_later(process_graph):
+    """Update n's result is applied when update n + 1 is called: which estimates tracking sees depends
+    on the call sequence only, not on how fast the worker is."""
+    process_graph.add_keyframe(0, np.eye(4))
+    process_graph.update()
+    assert len(process_graph.keyframe_poses()[0]) == 0          # sent, not applied
+    T1 = np.eye(4)
+    T1[0, 3] = 0.1
+    process_graph.add_keyframe(1, T1)
+    process_graph.add_relative_pose(0, 1, T1, 0.05, 2.0)
+    process_graph.update()
+    assert list(process_graph.keyframe_poses()[0]) == [0]       # the first update's result
+    process_graph.sync()
+    ids, poses = process_graph.keyframe_poses()
+    assert list(ids) == [0, 1]
+    np.testing.assert_allclose(poses[1], T1, atol=1e-9)
+
+
+def test_unsolved_loop_reports_no_residual_until_its_result_arrives(process_graph):
+    process_graph.add_keyframe(0, np.eye(4))
+    process_graph.add_keyframe(1, np.eye(4))
+    process_graph.add_relative_pose(0, 1, np.eye(4), 0.05, 2.0)
+    process_graph.update()
+    process_graph.sync()
+    T_wrong = np.eye(4)
+    T_wrong[0, 3] = 1.0
+    loop = process_graph.add_relative_pose(0, 1, T_wrong, 0.02, 1.0, kernel="cauchy")
+    assert process_graph.relative_pose_error(loop) == (0.0, 0.0)
+    process_graph.update(relinearize=True)
+    process_graph.sync()
+    assert process_graph.relative_pose_error(loop)[0] > 0.5     # the graph keeps disagreeing with it
+
+
+def test_handles_agree_and_removal_needs_no_round_trip(process_graph):
+    inline = build_graph(BackendConfig(window_keyframes=4), RING_CALIBRATION)
+    for graph in (inline, process_graph):
+        graph.add_keyframe(0, np.eye(4))
+        graph.add_keyframe(1, np.eye(4))
+        graph.add_landmark(7, np.array([0.0, 0.0, 2.0]))
+        handles = [graph.add_observation(0, 7, (319.5, 239.5), 2.0), graph.add_relative_pose(0, 1, np.eye(4), 0.05, 2)]
+        graph.remove_factors(handles[1:])
+        graph.add_relative_pose(0, 1, np.eye(4), 0.05, 2.0)
+        graph.update()
+    process_graph.sync()   # the worker checks every handle against the one counted here
+    assert handles == [2, 3]
+    with pytest.raises(BackendError, match="unknown factor handle"):
+        process_graph.remove_factors([3])
+
+
+def test_a_failure_in_the_worker_names_the_step():
+    """A pose of NaNs (a bug upstream) fails in the worker: the error names the command and the cause."""
+    graph = GraphProcess(_spec())
+    try:
+        graph.add_keyframe(0, np.full((4, 4), np.nan))
+        graph.update()
+        with pytest.raises(BackendError, match=r"mapping worker failed in 'keyframe': LinAlgError"):
+            graph.sync()
+    finally:
+        graph.close()
+
+
+def test_a_dead_worker_is_reported_with_its_exit_code():
+    graph = GraphProcess(_spec())
+    try:
+        graph.add_keyframe(0, np.eye(4))
+        graph.update()
+        graph.sync()
+        os.kill(graph._process.pid, signal.SIGKILL)
+        graph._process.join(timeout=10)
+        with pytest.raises(BackendError, match=r"exited unexpectedly \(exit code -9\)"):
+            graph.update()
+            graph.sync()
+    finally:
+        graph.close()
+
+
+def test_close_leaves_no_worker_and_estimates_stay_readable():
+    graph = GraphProcess(_spec())
+    graph.add_keyframe(0, np.eye(4))
+    graph.update()
+    graph.sync()
+    pid = graph._process.pid
+    graph.close()
+    graph.close()   # twice is fine
+    assert pid not in [p.pid for p in mp.active_children()]
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
+    assert list(graph.keyframe_poses()[0]) == [0]
+
+
+def test_worker_ignores_ctrl_c():
+    """Ctrl-C at a terminal reaches the whole process group; the main process handles it (and still
+    needs the worker to finish the run), so the worker must not die of it."""
+    graph = GraphProcess(_spec())
+    try:
+        graph.add_keyframe(0, np.eye(4))
+        graph.update()
+        graph.sync()
+        os.kill(graph._process.pid, signal.SIGINT)
+        graph.add_keyframe(1, np.eye(4))
+        graph.add_relative_pose(0, 1, np.eye(4), 0.05, 2.0)
+        graph.update()
+        graph.sync()
+        assert list(graph.keyframe_poses()[0]) == [0, 1]
+    finally:
+        graph.close()
