@@ -39,8 +39,9 @@ class WindowParams:
     """The window's size and effort; defaults mirror ``backend`` in the run config (BackendConfig)."""
 
     window_keyframes: int = 6
-    iterations: int = 10
+    iterations: int = 5
     pose_graph_iterations: int = 30
+    final_iterations: int = 20   # optimize_all: from windows that each stopped early, to convergence
     essential_min_shared: int = 100
     essential_sigma_t: float = 0.02
     essential_sigma_r_deg: float = 1.0
@@ -192,7 +193,7 @@ class LocalWindowBackend:
         a run or an offline refinement, never per keyframe)."""
         if len(self._poses) == 0:
             return
-        self._adjust(set(self._poses.slot), iterations or self.window.iterations)
+        self._adjust(set(self._poses.slot), iterations or self.window.final_iterations)
         self._solved = True
 
     def _window(self, focus: int, new: list[int]) -> set[int]:

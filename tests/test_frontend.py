@@ -365,6 +365,9 @@ class DynamicAt:
     def __init__(self, indices):
         self.indices = set(indices)
 
+    def begin_frame(self, rgb, timestamp) -> None:
+        pass
+
     def process(self, frame: FeatureFrame, rgb, gray, depth, predicted_T_cw, last_T_cw) -> np.ndarray:
         return np.full(len(frame), 1.0 if frame.index in self.indices else 0.0)
 

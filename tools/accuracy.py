@@ -65,7 +65,9 @@ CASES = {c.name: c for c in [
          "fr1/rpy-400, frames 185-214 blank", 0.0241),
     Case("bonn", BONN, ("run", "{seq}"), "Bonn crowd-480, default (dynamic handling on)", 0.0124, min_loops=3),
     Case("bonn_static", BONN, ("run", "{seq}", "-c", "static"), "Bonn crowd-480, -c static"),
-    Case("xyz", XYZ, ("run", "{seq}"), "fr1/xyz-37, default", 0.0055),
+    # 0.0055 while the graph was solved in line; 0.0070 since it is solved in the worker process and its
+    # results reach tracking one keyframe later (8 keyframes in 37 frames: in line 0.0061 with the window).
+    Case("xyz", XYZ, ("run", "{seq}"), "fr1/xyz-37, default", 0.0070),
     Case("desk", DESK, ("run", "{seq}"), "fr1/desk, 9 frames, default", 0.0037),
     Case("demo", "", ("demo", "--movers", "none", "--no-compare"), "generated room without people (dynslam demo "
          "--movers none), 120 frames", 0.0035),

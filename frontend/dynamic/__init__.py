@@ -32,6 +32,11 @@ class DynamicFilter(Protocol):
     name: str
     stats: Optional[DynamicStats]   # per-frame flag counts (None for the null filter)
 
+    def begin_frame(self, rgb: np.ndarray, timestamp: float) -> None:
+        """A new frame arrived: start what needs only the image (the detector, on a thread) so it runs
+        while the features are extracted. Optional: ``process`` does it itself when this was not called."""
+        ...
+
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
         """Dynamic probability in [0, 1] for each of the frame's features."""
@@ -57,6 +62,9 @@ class StaticWorld:
     name = "none"
     stats = None
     last_mask = None
+
+    def begin_frame(self, rgb, timestamp) -> None:
+        return None
 
     def process(self, frame, rgb, gray, depth, predicted_T_cw, last_T_cw) -> np.ndarray:
         return np.zeros(len(frame))

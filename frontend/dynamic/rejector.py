@@ -7,6 +7,7 @@ rejected.
 """
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Optional
 
@@ -41,13 +42,28 @@ class DynamicRejector:
         self.last_outputs: dict[str, MethodOutput] = {}
         self.last_fused: np.ndarray = np.zeros(0)
         self.last_keypoints: np.ndarray = np.zeros((0, 2))
+        # ONNX Runtime releases the GIL: the detector runs on this thread while the features are
+        # extracted. One thread, one frame ahead at most, results used in frame order: deterministic.
+        self._detect_thread: Optional[ThreadPoolExecutor] = None
+        self._pending: Optional[tuple[float, Future]] = None
+
+    def begin_frame(self, rgb: np.ndarray, timestamp: float) -> None:
+        if self.detector is None:
+            return
+        if self._detect_thread is None:
+            self._detect_thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-detector")
+        self._pending = (timestamp, self._detect_thread.submit(self.detector.detect, rgb, timestamp))
 
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
         ctx = DynamicContext(frame, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
         if self.detector is not None:  # built only when a method or the box prior needs it
-            with self.timer.measure("dynamic.detector"):
-                ctx.detections = self.detector.detect(rgb, frame.timestamp)
+            with self.timer.measure("dynamic.detector"):   # with begin_frame: the wait for the thread
+                pending, self._pending = self._pending, None
+                if pending is not None and pending[0] == frame.timestamp:
+                    ctx.detections = pending[1].result()
+                else:
+                    ctx.detections = self.detector.detect(rgb, frame.timestamp)
         outputs: dict[str, MethodOutput] = {}
         for method in self.methods:
             with self.timer.measure(f"dynamic.{method.name}"):
@@ -104,7 +120,10 @@ class DynamicRejector:
         self._last = None
 
     def close(self) -> None:
-        """Persist what is worth keeping (the detection cache)."""
+        """Stop the detector thread and persist what is worth keeping (the detection cache)."""
+        if self._detect_thread is not None:
+            self._detect_thread.shutdown(wait=True)
+            self._detect_thread, self._pending = None, None
         save = getattr(self.detector, "save", None)
         if callable(save):
             save()

@@ -137,6 +137,7 @@ class System:
         check_inputs(rgb, depth, timestamp, self.camera.width, self.camera.height)
         index = len(self._frames) if index is None else index
         depth = clean_depth(depth)   # NaN / inf / negative (float depth's "no measurement") -> 0 = invalid
+        self.dynamic_filter.begin_frame(rgb, timestamp)
         with self.timer.measure("extract"):
             gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
             frame = self.extractor.extract(gray, depth, index, timestamp)
