@@ -56,8 +56,10 @@ class LocalMapper:
         self.graph: GraphBackend = graph if graph is not None else build_graph(cfg, calibration)
 
     def insert_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, landmark_of_keypoint: np.ndarray,
-                        colors: np.ndarray | None = None) -> KeyframeInsertion:
-        """``colors``: (N,3) uint8 BGR of each keypoint, stored with the landmarks it creates."""
+                        colors: np.ndarray | None = None, solve: bool = True) -> KeyframeInsertion:
+        """``colors``: (N,3) uint8 BGR of each keypoint, stored with the landmarks it creates.
+        ``solve=False`` leaves the graph update to a later ``solve()`` (so loop closing can add to the
+        same update: one hand-over to a worker process per keyframe); culling then happens there too."""
         lm_of_kp = landmark_of_keypoint.copy()
         kf_id = self.map.add_keyframe(frame, T_wc, lm_of_kp)
         self.graph.add_keyframe(kf_id, T_wc)
@@ -69,10 +71,15 @@ class LocalMapper:
         created = self._create_landmarks(kf_id, frame, T_wc, lm_of_kp, colors)
         self.map.keyframes[kf_id].landmark_of_keypoint = lm_of_kp
         self.map.update_covisibility(kf_id)
-        self.graph.update()
-        self._pull_estimates()
-        culled = self._cull_landmarks(kf_id)
+        culled = self.solve() if solve else 0
         return KeyframeInsertion(kf_id, created, promoted, culled)
+
+    def solve(self, relinearize: bool = False, extra_updates: int | None = None) -> int:
+        """Update the graph (``relinearize`` after a loop changed), take its estimates, cull landmarks;
+        returns how many were culled."""
+        self.graph.update(extra_updates=extra_updates, relinearize=relinearize)
+        self._pull_estimates()
+        return self._cull_landmarks(self.map.num_keyframes - 1)
 
     def record_tracking(self, visible_ids: np.ndarray, found_ids: np.ndarray) -> None:
         """Frame statistics for culling: landmarks in view, and landmarks matched as inliers."""

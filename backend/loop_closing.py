@@ -67,13 +67,18 @@ class LoopCloser:
             exclude_recent=cfg.exclude_recent, max_candidates=cfg.max_candidates,
             reprojection_error=cfg.reprojection_error, depth_tolerance=cfg.depth_tolerance, seed=seed)
         self.loops: list[LoopEdge] = []
+        self._optimize_now = True
+        self._pending_optimization = False
 
     @property
     def index(self) -> KeyframeIndex:
         return self.detector.index
 
-    def process_keyframe(self, kf_id: int) -> Optional[LoopEdge]:
-        """Detect and close a loop for a newly inserted keyframe (which is indexed either way)."""
+    def process_keyframe(self, kf_id: int, optimize: bool = True) -> Optional[LoopEdge]:
+        """Detect and close a loop for a newly inserted keyframe (which is indexed either way). With
+        ``optimize=False`` a loop added or removed is left in the graph for the caller's next update
+        (``take_pending_optimization()`` says whether it must relinearise)."""
+        self._optimize_now = optimize
         last = max((e.query_kf for e in self.loops if e.source == "detected"), default=None)
         if not self.cfg.enabled or (last is not None and kf_id < last + self.cfg.min_keyframes_between):
             self.detector.index_keyframe(self.mapper.map, kf_id)
@@ -110,8 +115,16 @@ class LoopCloser:
         return edge
 
     def optimize(self) -> None:
+        if not self._optimize_now:
+            self._pending_optimization = True
+            return
         self.mapper.graph.update(extra_updates=self.cfg.extra_updates, relinearize=True)
         self.mapper.refresh_from_graph()
+
+    def take_pending_optimization(self) -> bool:
+        """Whether a loop changed since the last call without the graph being updated for it."""
+        pending, self._pending_optimization = self._pending_optimization, False
+        return pending
 
     def check_consistency(self) -> list[LoopEdge]:
         """Remove live loops the optimised graph contradicts; returns the ones removed."""

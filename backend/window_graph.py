@@ -39,7 +39,7 @@ class WindowParams:
     """The window's size and effort; defaults mirror ``backend`` in the run config (BackendConfig)."""
 
     window_keyframes: int = 6
-    iterations: int = 5
+    iterations: int = 10
     pose_graph_iterations: int = 30
     final_iterations: int = 20   # optimize_all: from windows that each stopped early, to convergence
     essential_min_shared: int = 100

@@ -284,30 +284,38 @@ class System:
             self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
             is_keyframe = self._decide_keyframe(frame, T_wc, result.landmark_of_keypoint, len(tracked_ids))
         if is_keyframe:
-            with self.timer.measure("backend"):
-                insertion = self.mapper.insert_keyframe(frame, T_wc, result.landmark_of_keypoint,
-                                                        self._keypoint_colors(frame))
-            self.tracker.adopt_keyframe_landmarks(self.mapper.map.keyframes[insertion.kf_id].landmark_of_keypoint)
-            self._reference_kf, self._last_keyframe_frame = insertion.kf_id, len(self._frames)
-            # The frame is the keyframe: it takes the keyframe's estimate, which a graph result applied
-            # during the insertion may have moved (a loop correction arriving from the worker).
-            T_wc = self.mapper.map.kf_T_wc[insertion.kf_id].copy()
-            self.tracker.rebase(invert(T_wc))
+            T_wc = self._add_keyframe(frame, T_wc, result.landmark_of_keypoint)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
         self._frames.add(frame.timestamp, self._reference_kf, T_kf_c)
-        if is_keyframe:
-            self._close_loops(insertion.kf_id)
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids))
 
-    def _close_loops(self, kf_id: int) -> None:
-        """Loop detection/closing for a new keyframe; if the graph moved, tracking follows it."""
-        n_active = len(self.loop_closer.active_loops())
+    def _add_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, landmark_of_keypoint: np.ndarray) -> np.ndarray:
+        """Insert the keyframe, look for a loop, then one graph update for both (one hand-over to the
+        worker per keyframe, so tracking does not wait for a loop's update either). Returns the frame's
+        pose: the keyframe's estimate, which a result applied in the update may have moved (a loop
+        correction arriving from the worker); tracking continues from it."""
+        with self.timer.measure("backend"):
+            insertion = self.mapper.insert_keyframe(frame, T_wc, landmark_of_keypoint, self._keypoint_colors(frame),
+                                                    solve=False)
+        kf_id = insertion.kf_id
+        self.tracker.adopt_keyframe_landmarks(self.mapper.map.keyframes[kf_id].landmark_of_keypoint)
+        self._reference_kf, self._last_keyframe_frame = kf_id, len(self._frames)
+        self._close_loops(kf_id, optimize=False)
+        loop_changed = self.loop_closer.take_pending_optimization()
+        with self.timer.measure("backend"):
+            self.mapper.solve(relinearize=loop_changed,
+                              extra_updates=self.config.loop.extra_updates if loop_changed else None)
+        T_wc = self.mapper.map.kf_T_wc[kf_id].copy()
+        self.tracker.rebase(invert(T_wc))
+        return T_wc
+
+    def _close_loops(self, kf_id: int, optimize: bool = True) -> None:
+        """Loop detection/closing for a new keyframe (``optimize=False``: its graph update is left to
+        the caller)."""
         with self.timer.measure("loop"):
             start = time.perf_counter()
-            edge = self.loop_closer.process_keyframe(kf_id)
+            self.loop_closer.process_keyframe(kf_id, optimize)
             self.loop_times_ms.append((time.perf_counter() - start) * 1e3)
-        if edge is not None or len(self.loop_closer.active_loops()) != n_active:
-            self.tracker.rebase(invert(self.mapper.map.kf_T_wc[kf_id] @ self._frames.last_T_kf_c))
 
     def _localize(self, frame: FeatureFrame) -> FrameOutput:
         """Localisation-only: relocalise against the whole map at the start and after LOST, else
