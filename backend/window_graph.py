@@ -42,6 +42,7 @@ class WindowParams:
     iterations: int = 10
     pose_graph_iterations: int = 30
     final_iterations: int = 20   # optimize_all: from windows that each stopped early, to convergence
+    final_max_keyframes: int = 300
     essential_min_shared: int = 100
     essential_sigma_t: float = 0.02
     essential_sigma_r_deg: float = 1.0
@@ -51,6 +52,7 @@ class WindowParams:
     @classmethod
     def from_config(cls, cfg: BackendConfig) -> "WindowParams":
         return cls(window_keyframes=cfg.window_keyframes, iterations=cfg.window_iterations,
+                   final_max_keyframes=cfg.final_global_ba_max_keyframes,
                    essential_min_shared=cfg.essential_min_shared, max_fixed_keyframes=cfg.window_fixed_keyframes)
 
 
@@ -96,7 +98,8 @@ class LocalWindowBackend:
         self._obs_ends: dict[int, tuple[int, int]] = {}         # observation handle -> (kf, lm)
         self._kf_obs: dict[int, list[int]] = {}                 # may hold removed handles: filter by _live
         self._lm_obs: dict[int, list[int]] = {}
-        self._lm_ref: dict[int, int] = {}                       # landmark -> first observing keyframe
+        self._point_ref = _GrowingRows(())   # per landmark slot: pose slot of its first observer, -1 none
+        self._span_start: Optional[int] = None  # oldest keyframe a relative factor added/removed touches
         self._relative: dict[int, tuple[int, int, np.ndarray]] = {}
         self._kf_relative: dict[int, list[int]] = {}
         self._lm_prior: dict[int, int] = {}                     # landmark -> its prior's handle
@@ -121,6 +124,7 @@ class LocalWindowBackend:
         if lm_id in self._points.slot:
             raise BackendError(f"landmark {lm_id} already exists")
         self._points.add(lm_id, np.asarray(xyz_guess, float))
+        self._point_ref.add(lm_id, -1)
         self._lm_obs[lm_id] = []
         prior = self._factors.landmark_prior(lm_id, xyz_guess)
         if prior is not None:
@@ -140,7 +144,9 @@ class LocalWindowBackend:
         self._obs_ends[handle] = (kf_id, lm_id)
         self._kf_obs[kf_id].append(handle)
         self._lm_obs[lm_id].append(handle)
-        self._lm_ref.setdefault(lm_id, kf_id)
+        slot = self._points.slot[lm_id]
+        if self._point_ref.values[slot] < 0:
+            self._point_ref.values[slot] = self._poses.slot[kf_id]
         return handle
 
     def add_relative_pose(self, kf_a: int, kf_b: int, T_ab: np.ndarray, sigma_t: float, sigma_r_deg: float,
@@ -151,7 +157,12 @@ class LocalWindowBackend:
         self._relative[handle] = (kf_a, kf_b, np.array(T_ab, dtype=float))
         self._kf_relative[kf_a].append(handle)
         self._kf_relative[kf_b].append(handle)
+        self._touch_span(kf_a, kf_b)
         return handle
+
+    def _touch_span(self, *kf_ids: int) -> None:
+        oldest = min(kf_ids)
+        self._span_start = oldest if self._span_start is None else min(self._span_start, oldest)
 
     def relative_pose_error(self, handle: int) -> tuple[float, float]:
         if handle not in self._relative:
@@ -169,13 +180,15 @@ class LocalWindowBackend:
         for h in handles:
             del self._live[h]
             self._obs_ends.pop(h, None)
-            self._relative.pop(h, None)
+            if h in self._relative:
+                self._touch_span(*self._relative.pop(h)[:2])
 
     # --- solving --------------------------------------------------------------------------------
     def update(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
         """Adjust the window around the newest keyframe; with ``relinearize`` (a loop changed) first
         correct every keyframe through the pose graph. ``extra_updates`` is iSAM2's and ignored here."""
         new, self._new_keyframes = self._new_keyframes, []
+        span_start, self._span_start = self._span_start, None
         if len(self._poses) == 0:
             return
         if new:
@@ -183,17 +196,20 @@ class LocalWindowBackend:
         elif self._focus is None:
             self._focus = int(self._poses.ids[len(self._poses) - 1])
         if relinearize and len(self._poses) > 1:
-            self._correct_with_pose_graph()
+            self._correct_with_pose_graph(span_start)
         window = self._window(self._focus, new)
         self._adjust(window)
         self._solved = True
 
     def optimize_all(self, iterations: Optional[int] = None) -> None:
-        """Bundle-adjust every keyframe and landmark at once (cost grows with the map: for the end of
-        a run or an offline refinement, never per keyframe)."""
+        """Bundle-adjust every keyframe and landmark at once (for the end of a run, never per keyframe).
+        Beyond ``final_max_keyframes`` only the newest that many are adjusted, against their fixed
+        neighbours: the whole of a 1,000-keyframe map took minutes and 6 GB."""
         if len(self._poses) == 0:
             return
-        self._adjust(set(self._poses.slot), iterations or self.window.final_iterations)
+        ids = np.sort(self._poses.ids[: len(self._poses)])
+        self._adjust({int(k) for k in ids[-self.window.final_max_keyframes:]},
+                     iterations or self.window.final_iterations)
         self._solved = True
 
     def _window(self, focus: int, new: list[int]) -> set[int]:
@@ -201,7 +217,7 @@ class LocalWindowBackend:
         keyframe added since the last update."""
         counts: dict[int, int] = {}
         for lm in {self._obs_ends[h][1] for h in self._kf_obs[focus] if h in self._obs_ends}:
-            for kf in {self._obs_ends[h][0] for h in self._lm_obs[lm] if h in self._obs_ends}:
+            for kf in {self._obs_ends[h][0] for h in self._recent_observations(lm)}:
                 counts[kf] = counts.get(kf, 0) + 1
         counts.pop(focus, None)
         ranked = sorted(counts, key=lambda k: (-counts[k], -k))[: self.window.window_keyframes - 1]
@@ -212,21 +228,23 @@ class LocalWindowBackend:
                 window.add(a if b == focus else b)
         return window
 
+    def _recent_observations(self, lm: int) -> list[int]:
+        """The landmark's live observations by its latest observers only: a place seen on every lap of a
+        long run gathers observations without end, and a window needs only the freshest to hold it."""
+        cap = 2 * (self.window.window_keyframes + self.window.max_fixed_keyframes)
+        return [h for h in self._lm_obs[lm][-cap:] if h in self._obs_ends]
+
     def _adjust(self, window: set[int], iterations: Optional[int] = None) -> None:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        handles: set[int] = set()
-        landmarks = sorted({self._obs_ends[h][1] for k in window for h in self._kf_obs[k] if h in self._obs_ends})
+        handles = {h for k in window for h in self._kf_obs[k] if h in self._obs_ends}
+        landmarks = sorted({self._obs_ends[h][1] for h in handles})
         outside: dict[int, list[int]] = {}    # keyframe outside the window -> its observations of window landmarks
         for lm in landmarks:
-            for h in self._lm_obs[lm]:
-                if h in self._obs_ends:
-                    kf = self._obs_ends[h][0]
-                    if kf in window:
-                        handles.add(h)
-                    else:
-                        outside.setdefault(kf, []).append(h)
-            if lm in self._lm_prior:
-                handles.add(self._lm_prior[lm])
+            for h in self._recent_observations(lm):
+                kf = self._obs_ends[h][0]
+                if kf not in window:
+                    outside.setdefault(kf, []).append(h)
+        handles.update(self._lm_prior[lm] for lm in landmarks if lm in self._lm_prior)
         # The fixed keyframes that see most of the window's landmarks hold it; a cap keeps the cost
         # flat where a place is revisited many times (its landmarks are seen by ever more keyframes).
         ranked = sorted(outside, key=lambda k: (-len(outside[k]), -k))[: self.window.max_fixed_keyframes]
@@ -270,50 +288,66 @@ class LocalWindowBackend:
             self._points.values[slots] = gtsam.utilities.extractPoint3(result).reshape(-1, 3)
         self.last_window = (len(window), len(fixed), len(landmarks))
 
-    def _correct_with_pose_graph(self) -> None:
-        """Loop correction over every keyframe's pose, then landmarks follow their reference keyframe."""
+    def _correct_with_pose_graph(self, span_start: Optional[int]) -> None:
+        """Loop correction of the keyframes from the oldest one a changed relative factor touches (the
+        loop's match keyframe) onwards, that keyframe and older neighbours held fixed: the part of the map
+        before the loop already agrees with the match keyframe, and the cost is that of the loop's span,
+        not of the map. Landmarks follow their reference keyframe."""
         n = len(self._poses)
         ids, before = self._poses.ids[:n].copy(), self._poses.values[:n].copy()
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        for k, T in zip(ids, before):
-            values.insert(X(int(k)), pose3(T))
-        graph.add(self._live[self._first[1]])
-        for h in sorted(self._relative):
-            graph.add(self._live[h])
+        start = int(ids.min()) if span_start is None else span_start
+        in_span = ids >= start
+        span = {int(k) for k in ids[in_span]}
+        handles = {h for k in span for h in self._kf_relative[k] if h in self._relative}
+        fixed = {start} | {x for h in handles for x in self._relative[h][:2] if x not in span}
         w = self.window
-        for a, b in self._essential_edges(ids):
+        edges = [e for e in self._essential_edges(span) if e[0] in span | fixed and e[1] in span | fixed]
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        noise = gtsam.noiseModel.Isotropic.Sigma(6, w.fixed_sigma)
+        for k in sorted(span | fixed):
+            pose = pose3(before[self._poses.slot[k]])
+            values.insert(X(k), pose)
+            if k in fixed:
+                graph.add(gtsam.PriorFactorPose3(X(k), pose, noise))
+        for h in sorted(handles):
+            graph.add(self._live[h])
+        for a, b in edges:
             T_ab = np.linalg.solve(before[self._poses.slot[a]], before[self._poses.slot[b]])
             graph.add(FactorBuilder.relative_pose(a, b, T_ab, w.essential_sigma_t, w.essential_sigma_r_deg, None))
         result = self._solve(graph, values, w.pose_graph_iterations)
-        after = np.stack([result.atPose3(X(int(k))).matrix() for k in ids])
+        after = before.copy()
+        for k in span - fixed:
+            after[self._poses.slot[k]] = result.atPose3(X(k)).matrix()
         self._poses.values[:n] = after
         m = len(self._points)
-        if m == 0:
+        ref = self._point_ref.values[:m].astype(np.int64)
+        moved = np.flatnonzero((ref >= 0) & in_span[np.maximum(ref, 0)])
+        if len(moved) == 0:
             return
-        lm_ids = self._points.ids[:m]
-        ref_slots = np.fromiter((self._poses.slot[self._lm_ref.get(int(j), int(ids[0]))] for j in lm_ids),
-                                np.int64, m)
-        correction = after[ref_slots] @ np.linalg.inv(before[ref_slots])
-        xyz = self._points.values[:m]
-        self._points.values[:m] = np.einsum("nij,nj->ni", correction[:, :3, :3], xyz) + correction[:, :3, 3]
+        correction = after[ref[moved]] @ np.linalg.inv(before[ref[moved]])
+        xyz = self._points.values[moved]
+        self._points.values[moved] = np.einsum("nij,nj->ni", correction[:, :3, :3], xyz) + correction[:, :3, 3]
 
-    def _essential_edges(self, ids: np.ndarray) -> list[tuple[int, int]]:
-        """ORB-SLAM's essential graph on the current estimate: consecutive keyframes, and keyframe pairs
-        that share at least ``essential_min_shared`` landmarks (a sparse keyframe x landmark product)."""
-        order = np.sort(ids)
-        edges = {(int(a), int(b)) for a, b in zip(order[:-1], order[1:])}
-        ends = np.array(list(self._obs_ends.values()), np.int64).reshape(-1, 2)
+    def _essential_edges(self, span: set[int]) -> list[tuple[int, int]]:
+        """ORB-SLAM's essential graph on the current estimate, among ``span`` and the keyframes they share
+        landmarks with: consecutive keyframes, and pairs sharing at least ``essential_min_shared``
+        landmarks (a sparse keyframe x landmark product over the span's observations only)."""
+        order = sorted(span)
+        edges = {(a, b) for a, b in zip(order[:-1], order[1:])}
+        span_landmarks = {self._obs_ends[h][1] for k in span for h in self._kf_obs[k] if h in self._obs_ends}
+        ends = np.array([self._obs_ends[h] for lm in span_landmarks for h in self._lm_obs[lm] if h in self._obs_ends],
+                        np.int64).reshape(-1, 2)
         if len(ends):
-            kf_slot = np.fromiter((self._poses.slot[int(k)] for k in ends[:, 0]), np.int64, len(ends))
+            kf_codes, kf_index = np.unique(ends[:, 0], return_inverse=True)
             lm_codes, lm_index = np.unique(ends[:, 1], return_inverse=True)
-            incidence = sparse.csr_matrix((np.ones(len(ends)), (kf_slot, lm_index)),
-                                          shape=(len(self._poses), len(lm_codes)))
+            incidence = sparse.csr_matrix((np.ones(len(ends)), (kf_index, lm_index)),
+                                          shape=(len(kf_codes), len(lm_codes)))
             incidence.data[:] = 1.0   # duplicates summed: one keyframe observing a landmark twice counts once
             shared = sparse.triu(incidence @ incidence.T, k=1).tocoo()
             strong = shared.data >= self.window.essential_min_shared
-            slot_ids = self._poses.ids[: len(self._poses)]
-            for a, b in zip(slot_ids[shared.row[strong]], slot_ids[shared.col[strong]]):
-                edges.add((int(min(a, b)), int(max(a, b))))
+            for a, b in zip(kf_codes[shared.row[strong]], kf_codes[shared.col[strong]]):
+                if int(a) in span or int(b) in span:
+                    edges.add((int(min(a, b)), int(max(a, b))))
         return sorted(edges)
 
     @staticmethod

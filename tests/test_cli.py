@@ -451,6 +451,7 @@ def test_demo_movers_list_every_generator_choice():
     assert DEMO_MOVERS == tuple(MOVER_PRESETS) + HARD_SCENES
 
 
+@pytest.mark.slow
 def test_demo_runs_with_and_without_dynamic_handling_and_prints_both(tmp_path, capsys):
     """The default demo: people walking, the default config (dynamic handling on), then the same run
     with dynamic handling off; both ATEs on one line, the second run in without_dynamic/."""

@@ -164,6 +164,7 @@ def online_frames(out: Path) -> int:
 
 # --- 1. SIGINT -----------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.real
 def test_sigint_stops_after_the_frame_and_writes_every_result(tmp_path):
     """Ctrl-C at frame ~40 of fr1/rpy, and again while the results are written: exit 130, every final

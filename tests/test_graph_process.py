@@ -7,13 +7,15 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import signal
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from backend.factors import BackendError
 from backend.local_mapping import build_graph
-from conftest import RING_CALIBRATION, run_ring
+from conftest import REPO, RING_CALIBRATION, run_ring
 from slam.core.config import BackendConfig
 from slam.runtime.graph_process import GraphProcess, GraphSpec
 
@@ -146,3 +148,26 @@ def test_worker_ignores_ctrl_c():
         assert list(graph.keyframe_poses()[0]) == [0, 1]
     finally:
         graph.close()
+
+
+@pytest.mark.slow
+def test_a_script_without_a_main_guard_runs_once(tmp_path):
+    """multiprocessing would re-run the user's script in the worker; a script that just builds a System
+    at top level (no ``if __name__ == "__main__"``) must run once and track."""
+    script = tmp_path / "my_slam.py"
+    script.write_text(
+        "from slam.datasets import SyntheticSequence\n"
+        "from slam.run.dynamic_eval import synthetic_config\n"
+        "from slam.runtime.system import System\n"
+        "print('script body runs', flush=True)\n"
+        "seq = SyntheticSequence(n_frames=12)\n"
+        "system = System(synthetic_config(seq, preset='static'))\n"
+        "for f in seq:\n"
+        "    system.process(f.rgb, f.depth, f.timestamp)\n"
+        "system.close()\n"
+        "print('keyframes', system.num_keyframes)\n")
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=180,
+                          cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("script body runs") == 1, proc.stdout
+    assert "keyframes" in proc.stdout and "keyframes 0" not in proc.stdout

@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import signal
+import sys
 import traceback
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Iterable, Optional
 
@@ -47,6 +49,25 @@ class GraphSpec:
 
     def build(self) -> GraphBackend:
         return build_graph(self.config, self.calibration)
+
+
+@contextmanager
+def _main_module_hidden():
+    """multiprocessing re-imports the caller's main script in a forkserver/spawn child so the target can
+    come from it; ours comes from this module, and a user's script without an ``if __name__ ==
+    "__main__"`` guard would run again in the worker (and start a worker of its own). While the worker
+    is started, the main module shows no file or spec, so nothing of it is imported there."""
+    main = sys.modules.get("__main__")
+    saved = {key: main.__dict__[key] for key in ("__file__", "__spec__") if main is not None and key in main.__dict__}
+    try:
+        for key in saved:
+            if key == "__spec__":
+                main.__spec__ = None
+            else:
+                del main.__dict__[key]
+        yield
+    finally:
+        main.__dict__.update(saved)
 
 
 def _serve(spec: GraphSpec, conn) -> None:
@@ -114,7 +135,8 @@ class GraphProcess:
         # (a Ctrl-C in between is delivered then, not lost).
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
-            self._process.start()
+            with _main_module_hidden():
+                self._process.start()
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         child.close()
