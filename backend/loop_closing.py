@@ -79,6 +79,12 @@ class LoopCloser:
         ``optimize=False`` a loop added or removed is left in the graph for the caller's next update
         (``take_pending_optimization()`` says whether it must relinearise)."""
         self._optimize_now = optimize
+        try:
+            return self._process_keyframe(kf_id, optimize)
+        finally:
+            self._optimize_now = True   # direct calls (add_constraint, check_consistency) solve at once
+
+    def _process_keyframe(self, kf_id: int, optimize: bool) -> Optional[LoopEdge]:
         last = max((e.query_kf for e in self.loops if e.source == "detected"), default=None)
         if not self.cfg.enabled or (last is not None and kf_id < last + self.cfg.min_keyframes_between):
             self.detector.index_keyframe(self.mapper.map, kf_id)
@@ -87,7 +93,8 @@ class LoopCloser:
         candidate = self.detector.process_keyframe(self.mapper.map, kf_id)
         edge = self.close(candidate) if candidate is not None else None
         if self.active_loops():
-            self.check_consistency()
+            # A loop whose update is still to come has no residual yet: checked from the next keyframe on.
+            self.check_consistency(skip=edge if not optimize else None)
         return edge
 
     def close(self, candidate: LoopCandidate) -> LoopEdge:
@@ -126,10 +133,12 @@ class LoopCloser:
         pending, self._pending_optimization = self._pending_optimization, False
         return pending
 
-    def check_consistency(self) -> list[LoopEdge]:
+    def check_consistency(self, skip: Optional[LoopEdge] = None) -> list[LoopEdge]:
         """Remove live loops the optimised graph contradicts; returns the ones removed."""
         removed = []
         for edge in self.active_loops():
+            if edge is skip:
+                continue
             edge.residual_t, edge.residual_r_deg = self.mapper.graph.relative_pose_error(edge.handle)
             if edge.residual_t > self.cfg.max_residual_t or edge.residual_r_deg > self.cfg.max_residual_r_deg:
                 removed.append(edge)

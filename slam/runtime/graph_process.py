@@ -204,6 +204,8 @@ class GraphProcess:
         """Against the last applied estimate; (0, 0) while the factor's first solve is still out."""
         if handle not in self._relative:
             raise BackendError(f"factor handle {handle} is not a live relative-pose factor")
+        if handle not in self._solved_relative and handle in self._sent_relative and self._in_flight:
+            self._collect()   # its update was sent: wait for it (a check right after adding a loop)
         if handle not in self._solved_relative:
             return 0.0, 0.0
         a, b, T_ab = self._relative[handle]
