@@ -239,7 +239,8 @@ def test_ctrl_c_at_a_terminal_stops_every_process_and_writes_complete_files(tum_
     out, err = tmp_path / "out", tmp_path / "stderr.txt"
     with err.open("w") as stderr:
         process = subprocess.Popen([sys.executable, "-m", "slam.cli", "run", str(tum_folder), "-o", str(out), "-q",
-                                    "--set", "output.report=false"], cwd=REPO, stdout=subprocess.DEVNULL,
+                                    "--set", "output.report=false", "--set", "backend.worker_process=true",
+                                    "--set", "backend.optimizer=window"], cwd=REPO, stdout=subprocess.DEVNULL,
                                    stderr=stderr, start_new_session=True,
                                    preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
