@@ -169,6 +169,12 @@ class LocalMapper:
         """Copy the graph's current estimates into the map (after an update outside insert_keyframe)."""
         self._pull_estimates()
 
+    def sync(self) -> None:
+        """Every update sent so far applied to the map (a graph solved in another process answers one
+        keyframe late in a run; for a caller that inspects or edits the settled graph mid-run)."""
+        self.graph.sync()
+        self._pull_estimates()
+
     def finish(self, global_adjustment: bool = False) -> None:
         """End of a run: every update applied (and with ``global_adjustment`` one adjustment of the whole
         map), estimates in the map, the graph's worker (if any) stopped."""

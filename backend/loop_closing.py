@@ -86,12 +86,13 @@ class LoopCloser:
 
     def _process_keyframe(self, kf_id: int, optimize: bool) -> Optional[LoopEdge]:
         last = max((e.query_kf for e in self.loops if e.source == "detected"), default=None)
+        edge = None
         if not self.cfg.enabled or (last is not None and kf_id < last + self.cfg.min_keyframes_between):
             self.detector.index_keyframe(self.mapper.map, kf_id)
             self.detector.reset_consistency()
-            return None
-        candidate = self.detector.process_keyframe(self.mapper.map, kf_id)
-        edge = self.close(candidate) if candidate is not None else None
+        else:
+            candidate = self.detector.process_keyframe(self.mapper.map, kf_id)
+            edge = self.close(candidate) if candidate is not None else None
         if self.active_loops():
             # A loop whose update is still to come has no residual yet: checked from the next keyframe on.
             self.check_consistency(skip=edge if not optimize else None)
@@ -126,7 +127,7 @@ class LoopCloser:
             self._pending_optimization = True
             return
         self.mapper.graph.update(extra_updates=self.cfg.extra_updates, relinearize=True)
-        self.mapper.refresh_from_graph()
+        self.mapper.sync()   # a direct call returns with its update applied, also from a worker process
 
     def take_pending_optimization(self) -> bool:
         """Whether a loop changed since the last call without the graph being updated for it."""

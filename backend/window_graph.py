@@ -41,6 +41,9 @@ class WindowParams:
     window_keyframes: int = 6
     iterations: int = 10
     pose_graph_iterations: int = 30
+    loop_iterations: int = 10      # the bundle adjustment over a loop's span after its pose graph (0: none)
+    loop_max_keyframes: int = 60
+    max_undoable_loops: int = 16   # newest loops whose correction removal can take back exactly
     final_iterations: int = 20   # optimize_all: from windows that each stopped early, to convergence
     final_max_keyframes: int = 300
     essential_min_shared: int = 100
@@ -100,6 +103,11 @@ class LocalWindowBackend:
         self._lm_obs: dict[int, list[int]] = {}
         self._point_ref = _GrowingRows(())   # per landmark slot: pose slot of its first observer, -1 none
         self._span_start: Optional[int] = None  # oldest keyframe a relative factor added/removed touches
+        self._added_relative: list[int] = []     # relative factors added / removed since the last update
+        self._removed_relative: list[int] = []
+        # loop handle -> (pose slots, world-frame correction per slot) its update applied: removing a loop
+        # that was wrong undoes exactly what it did (a pose graph on the bent estimate could not)
+        self._corrections: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._relative: dict[int, tuple[int, int, np.ndarray]] = {}
         self._kf_relative: dict[int, list[int]] = {}
         self._lm_prior: dict[int, int] = {}                     # landmark -> its prior's handle
@@ -158,6 +166,7 @@ class LocalWindowBackend:
         self._kf_relative[kf_a].append(handle)
         self._kf_relative[kf_b].append(handle)
         self._touch_span(kf_a, kf_b)
+        self._added_relative.append(handle)
         return handle
 
     def _touch_span(self, *kf_ids: int) -> None:
@@ -182,6 +191,7 @@ class LocalWindowBackend:
             self._obs_ends.pop(h, None)
             if h in self._relative:
                 self._touch_span(*self._relative.pop(h)[:2])
+                self._removed_relative.append(h)
 
     # --- solving --------------------------------------------------------------------------------
     def update(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
@@ -189,6 +199,8 @@ class LocalWindowBackend:
         correct every keyframe through the pose graph. ``extra_updates`` is iSAM2's and ignored here."""
         new, self._new_keyframes = self._new_keyframes, []
         span_start, self._span_start = self._span_start, None
+        added, self._added_relative = self._added_relative, []
+        removed, self._removed_relative = self._removed_relative, []
         if len(self._poses) == 0:
             return
         if new:
@@ -196,7 +208,13 @@ class LocalWindowBackend:
         elif self._focus is None:
             self._focus = int(self._poses.ids[len(self._poses) - 1])
         if relinearize and len(self._poses) > 1:
-            self._correct_with_pose_graph(span_start)
+            if removed and not added and all(h in self._corrections for h in removed):
+                for h in sorted(removed, reverse=True):
+                    self._undo_correction(h)
+            else:
+                self._correct_loop(span_start, added)
+            for h in removed:
+                self._corrections.pop(h, None)
         window = self._window(self._focus, new)
         self._adjust(window)
         self._solved = True
@@ -211,6 +229,40 @@ class LocalWindowBackend:
         self._adjust({int(k) for k in ids[-self.window.final_max_keyframes:]},
                      iterations or self.window.final_iterations)
         self._solved = True
+
+    def _correct_loop(self, span_start: Optional[int], added: list[int]) -> None:
+        """A pose graph over the loop's span (fast, brings both ends together), then a bundle adjustment
+        of the span with its observations: the fused landmarks carry a right loop, and the landmarks
+        resist a wrong one, whose residual then stays large for the loop check (as in the iSAM2 graph)."""
+        n = len(self._poses)
+        before = self._poses.values[:n].copy()
+        span = self._correct_with_pose_graph(span_start)
+        if self.window.loop_iterations > 0 and span:
+            self._adjust(self._loop_window(span), self.window.loop_iterations)
+        slots = np.fromiter((self._poses.slot[k] for k in span), np.int64, len(span))
+        correction = self._poses.values[slots] @ np.linalg.inv(before[slots])
+        for h in added:
+            self._corrections[h] = (slots, correction)
+        while len(self._corrections) > self.window.max_undoable_loops:
+            del self._corrections[min(self._corrections)]
+
+    def _undo_correction(self, handle: int) -> None:
+        """Take back the world-frame correction a loop's update applied to each keyframe of its span;
+        landmarks follow their reference keyframe."""
+        slots, correction = self._corrections[handle]
+        n = len(self._poses)
+        before = self._poses.values[:n].copy()
+        self._poses.values[slots] = np.linalg.solve(correction, before[slots])
+        moved = np.zeros(n, bool)
+        moved[slots] = True
+        self._move_landmarks_with_reference(moved, before, self._poses.values[:n])
+
+    def _loop_window(self, span: list[int]) -> set[int]:
+        """The keyframes a loop's bundle adjustment moves: the whole span, or where it is longer than
+        ``loop_max_keyframes`` its two ends (the loop's match and query sides, where the fused landmarks
+        tie them); the middle, already bent by the pose graph, holds them as fixed poses."""
+        half = self.window.loop_max_keyframes // 2
+        return set(span) if len(span) <= 2 * half else set(span[:half]) | set(span[-half:])
 
     def _window(self, focus: int, new: list[int]) -> set[int]:
         """The focus keyframe and its most covisible keyframes (shared graph landmarks), plus any other
@@ -288,7 +340,7 @@ class LocalWindowBackend:
             self._points.values[slots] = gtsam.utilities.extractPoint3(result).reshape(-1, 3)
         self.last_window = (len(window), len(fixed), len(landmarks))
 
-    def _correct_with_pose_graph(self, span_start: Optional[int]) -> None:
+    def _correct_with_pose_graph(self, span_start: Optional[int]) -> list[int]:
         """Loop correction of the keyframes from the oldest one a changed relative factor touches (the
         loop's match keyframe) onwards, that keyframe and older neighbours held fixed: the part of the map
         before the loop already agrees with the match keyframe, and the cost is that of the loop's span,
@@ -319,6 +371,11 @@ class LocalWindowBackend:
         for k in span - fixed:
             after[self._poses.slot[k]] = result.atPose3(X(k)).matrix()
         self._poses.values[:n] = after
+        self._move_landmarks_with_reference(in_span, before, after)
+        return sorted(span - {start})
+
+    def _move_landmarks_with_reference(self, in_span: np.ndarray, before: np.ndarray, after: np.ndarray) -> None:
+        """Landmarks whose reference keyframe moved (``in_span`` by pose slot) move rigidly with it."""
         m = len(self._points)
         ref = self._point_ref.values[:m].astype(np.int64)
         moved = np.flatnonzero((ref >= 0) & in_span[np.maximum(ref, 0)])

@@ -505,6 +505,7 @@ def drift_walk():
             rgb, depth = seq.render(T, 0.0)
             system.process(rgb, depth, i / 30.0, i)
             gt.append(T)
+    system.mapper.sync()   # a worker's last update lands: the tests edit and compare the settled graph
     return system, np.array(gt)
 
 

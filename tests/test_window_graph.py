@@ -30,9 +30,12 @@ def test_window_stays_bounded_and_old_keyframes_stay_put():
 
 def test_a_loop_corrects_every_keyframe_and_the_landmarks_follow():
     """Drift of 0.5 deg per step over 30 steps (15 deg, ~0.9 m at the end); an exact loop factor between
-    the last and the first keyframe, solved through the pose graph, brings every keyframe back."""
+    the last and the first keyframe, solved through the pose graph, brings every keyframe back. The
+    bundle adjustment that follows it in a run is off here (``loop_iterations=0``): the ring's measurements
+    are drifted consistently among themselves, so a maximum-likelihood adjustment would rightly keep most
+    of that drift against one loop factor (tests/test_loop_closing.py covers it with real fused landmarks)."""
     n = 30
-    graph = LocalWindowBackend(BackendParams(), CAL, WindowParams(window_keyframes=5))
+    graph = LocalWindowBackend(BackendParams(), CAL, WindowParams(window_keyframes=5, loop_iterations=0))
     poses, points, owner = run_ring(graph, n, drift_deg=0.5)
     ids, est = graph.keyframe_poses()
     drift_before = pose_distance(est[-1], poses[-1])[0]

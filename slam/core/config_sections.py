@@ -139,10 +139,10 @@ class BackendConfig(ConfigSection):
 
     backend.graph.BackendParams takes its defaults from here (one source of truth)."""
 
-    worker_process: bool = False
+    worker_process: bool = True
     """Solve the graph in a worker process so tracking does not wait for it (slam/runtime/graph_process.py);
     results are applied at the next keyframe, so runs stay deterministic. False: solve in line."""
-    optimizer: Literal["window", "isam2"] = "isam2"
+    optimizer: Literal["window", "isam2"] = "window"
     """"window": local bundle adjustment around each new keyframe, loops through a pose graph
     (backend/window_graph.py; cost per keyframe flat as the map grows). "isam2": one iSAM2 graph over the
     whole map (backend/graph.py; cost per keyframe grows with the map and its loops)."""
@@ -157,7 +157,7 @@ class BackendConfig(ConfigSection):
     0.0224 m with 10, 0.0244 m with 5 (which halves the worker's time per keyframe)."""
     essential_min_shared: int = Field(100, ge=1)
     """Loop correction: keyframe pairs sharing this many landmarks are tied in the pose graph (ORB-SLAM: 100)."""
-    final_global_ba: bool = False
+    final_global_ba: bool = True
     """One bundle adjustment of the whole map after the last frame, before the results are written (as
     ORB-SLAM's full BA after a loop). The windows leave the map locally right but globally bent where a
     window never saw the whole: fr1/rpy with the default config 0.0337 m without, 0.0243 m with. Its cost

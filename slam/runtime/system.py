@@ -291,9 +291,9 @@ class System:
 
     def _add_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, landmark_of_keypoint: np.ndarray) -> np.ndarray:
         """Insert the keyframe, look for a loop, then one graph update for both (one hand-over to the
-        worker per keyframe, so tracking does not wait for a loop's update either). Returns the frame's
-        pose: the keyframe's estimate, which a result applied in the update may have moved (a loop
-        correction arriving from the worker); tracking continues from it."""
+        worker per keyframe; tracking waits only when a loop changed). Returns the frame's pose: the
+        keyframe's estimate, which a result applied in the update may have moved (a loop correction);
+        tracking continues from it."""
         with self.timer.measure("backend"):
             insertion = self.mapper.insert_keyframe(frame, T_wc, landmark_of_keypoint, self._keypoint_colors(frame),
                                                     solve=False)
@@ -305,6 +305,12 @@ class System:
         with self.timer.measure("backend"):
             self.mapper.solve(relinearize=loop_changed,
                               extra_updates=self.config.loop.extra_updates if loop_changed else None)
+            if loop_changed:
+                # The keyframe that closes (or drops) a loop waits for its correction, as ORB-SLAM's
+                # tracking waits on the map-update lock while a loop is corrected: every later pose,
+                # landmark and loop check builds on the corrected map (measured on the drift room of
+                # tests/test_loop_closing.py: ATE 0.0192 m with the wait, 0.0257 m without).
+                self.mapper.sync()
         T_wc = self.mapper.map.kf_T_wc[kf_id].copy()
         self.tracker.rebase(invert(T_wc))
         return T_wc
