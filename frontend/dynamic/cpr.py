@@ -132,6 +132,7 @@ import cv2
 import numpy as np
 
 from frontend.dynamic.base import DynamicContext, MethodOutput, keypoints_in_mask
+from frontend.dynamic.cpr_assoc import ProjectiveGrid
 from frontend.dynamic.cpr_cloud import (Cloud, build_cloud, mls_smooth, sample_grid, voxel_filter,  # noqa: F401
                                         _smallest_eigvec)
 from frontend.dynamic.cpr_icp import (cluster, correlation_scores, mad_threshold, sub_poses,  # noqa: F401
@@ -283,6 +284,7 @@ class CprMethod:
         key = (h, w, self.cfg.sample_step, cam.fx, cam.fy, cam.cx, cam.cy, cam.distortion)
         if key != self._grid_key:
             self._pix, self._rays = sample_grid(cam, h, w, self.cfg.sample_step)
+            self._proj_grid = ProjectiveGrid(cam, h, w, self.cfg.sample_step, self.cfg.projective_window)
             self._grid_key = key
         gray = ctx.gray if ctx.gray is not None else cv2.cvtColor(ctx.rgb, cv2.COLOR_BGR2GRAY)
         return build_cloud(ctx.depth, gray, self._pix, self._rays, self.cfg, cam.min_depth)
@@ -297,7 +299,10 @@ class CprMethod:
         if predicted_T_cw is not None and ref.T_cw is not None:
             init = ref.T_cw @ invert(np.asarray(predicted_T_cw, float))
         t0 = time.perf_counter()
-        target = ref.cloud.target()                      # builds the dense k-d tree once per reference
+        if cfg.association == "projective" and ref.cloud.shape == cloud.shape:
+            target = ref.cloud.projective_target(self._proj_grid)
+        else:
+            target = ref.cloud.target()                  # builds the dense k-d tree once per reference
         times["target"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         poses, valid = sub_poses(cloud.xyz, cloud.intensity, labels, cfg.clusters, target, init, cfg)

@@ -93,6 +93,16 @@ class CprConfig(ConfigSection):
     """Source points averaged in R(j)."""
     score_candidates: int = Field(4, ge=1)
     """Nearest reference points searched per point for R(j)."""
+    association: Literal["projective", "kdtree"] = "projective"
+    """Candidates for the ICP and R(j): reference samples in a pixel window around the projection (O(1), no
+    tree) or the exact nearest neighbours in 3-D (the paper; ~4x slower). Measurements in cpr.py."""
+    projective_window: int = Field(1, ge=1, le=4)
+    """projective: window half-width in sampling-grid cells ((2w+1)^2 candidates; 1 = 9, like the
+    paper's 10 nearest); above 4 the window spans more than +-16 px: the projection is no longer local."""
+    score_max_distance: float = Field(0.05, ge=0, le=1.0)
+    """R(j): a point's distance counts at most this (m; 0 = unbounded, the paper). Projective candidates lie
+    on the point's ray, so a point off every surface (moved people, occlusions) would otherwise add the
+    depth gap behind it, metres; 5 cm = one voxel. Above 1 m it bounds nothing in a room."""
     min_score_ratio: float = Field(1.0, ge=0)
     """Dynamic also needs R(j) > ratio * median(R); 1.0 (or less) = the paper only."""
     refine: bool = False
