@@ -74,7 +74,7 @@ class CprConfig(ConfigSection):
     clusters: int = Field(10, ge=1)
     sigma_frame: int = Field(2, ge=1)   # frames back to the reference
     sigma_keyframe: int = Field(5, ge=1)
-    candidates: int = Field(10, ge=1)
+    candidates: int = Field(10, ge=1)   # kdtree; projective: 1 = the window's nearest, more = the window
     student_nu: float = Field(5.0, gt=0)   # Student-t degrees of freedom
     icp_iterations: int = Field(6, ge=1)
     mad_scale: float = Field(1.4826, gt=0)
@@ -92,7 +92,8 @@ class CprConfig(ConfigSection):
     score_points: int = Field(800, ge=1)
     """Source points averaged in R(j)."""
     score_candidates: int = Field(4, ge=1)
-    """Nearest reference points searched per point for R(j)."""
+    """Nearest reference points searched per point for R(j) (kdtree; projective: 1 = the window's nearest,
+    more = the whole window)."""
     association: Literal["projective", "kdtree"] = "projective"
     """Candidates for the ICP and R(j): reference samples in a pixel window around the projection (O(1), no
     tree) or the exact nearest neighbours in 3-D (the paper; ~4x slower). Measurements in cpr.py."""
