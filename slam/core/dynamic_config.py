@@ -96,7 +96,7 @@ class CprConfig(ConfigSection):
     more = the whole window)."""
     association: Literal["projective", "kdtree"] = "projective"
     """Candidates for the ICP and R(j): reference samples in a pixel window around the projection (O(1), no
-    tree) or the exact nearest neighbours in 3-D (the paper; ~4x slower). Measurements in cpr.py."""
+    tree) or the exact nearest neighbours in 3-D (the paper; ~15 ms more per frame on Bonn). See cpr.py."""
     projective_window: int = Field(1, ge=1, le=4)
     """projective: window half-width in sampling-grid cells ((2w+1)^2 candidates; 1 = 9, like the
     paper's 10 nearest); above 4 the window spans more than +-16 px: the projection is no longer local."""
