@@ -107,7 +107,7 @@ def test_correlation_scores_match_a_per_pose_loop():
     src, src_i = rng.uniform(0, 1, (500, 3)), rng.random(500)
     poses = np.tile(np.eye(4), (5, 1, 1))
     poses[:, :3, 3] = rng.normal(0, 0.05, (5, 3))
-    cfg = CprConfig(score_points=300, score_candidates=4)
+    cfg = CprConfig(score_points=300, score_candidates=4, score_max_distance=0.0)   # the unbounded kNN R
     pick = (np.arange(300) * 500) // 300
     expected = []
     for T in poses:                                           # the straightforward pose-by-pose version
@@ -136,3 +136,45 @@ def test_kmeans_matches_scipy_kmeans2(k):
                 _, expected = kmeans2(xyz, k, iter=10, minit="++", seed=np.random.default_rng(seed),
                                       check_finite=False)
             np.testing.assert_array_equal(cluster(xyz, k, seed), expected)   # bit for bit
+
+
+def test_projective_candidates_are_the_window_around_the_projection():
+    """ProjectiveTarget.query against a per-point loop: distort the projection, take the nearest sample's grid
+    cell, the (2r+1)^2 cells around it; missing samples (holes, off the grid) have no candidate (inf)."""
+    from frontend.dynamic.cpr_assoc import ProjectiveGrid, ProjectiveTarget
+    from slam.core.camera import PinholeCamera
+
+    cam = PinholeCamera(540.0, 541.0, 318.0, 241.0, 640, 480, (0.04, -0.1, -0.0007, -0.0001, 0.0))
+    step, r = 4, 1
+    grid = ProjectiveGrid(cam, 480, 640, step, r)
+    rng = np.random.default_rng(3)
+    rows, cols = np.meshgrid(np.arange(2, 480, step), np.arange(2, 640, step), indexing="ij")
+    pix = np.stack([rows.ravel(), cols.ravel()], axis=1)
+    pix = pix[rng.random(len(pix)) > 0.2]                          # holes
+    xyz, inten = rng.uniform(-1, 1, (len(pix), 3)), rng.random(len(pix))
+    target = ProjectiveTarget(grid, pix, xyz, inten)
+    cell_of = {(a // step, b // step): i for i, (a, b) in enumerate(pix)}
+    p = np.column_stack([rng.uniform(-1.5, 1.5, 300), rng.uniform(-1.2, 1.2, 300), rng.uniform(0.5, 3, 300)])
+    p[:5, 2] = -1.0                                                # behind the camera: no candidates
+    dist, idx = target.query(p, 9)
+    for n in range(len(p)):
+        u, v = np.rint(cam.fx * p[n, 0] / p[n, 2] + cam.cx), np.rint(cam.fy * p[n, 1] / p[n, 2] + cam.cy)
+        if p[n, 2] <= 0 or not (0 <= u < 640 and 0 <= v < 480):
+            assert np.all(np.isinf(dist[n]))
+            continue
+        ru, rv = cv2.projectPoints(np.array([[(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0]]), np.zeros(3),
+                                   np.zeros(3), cam.K, np.asarray(cam.distortion))[0][0, 0]
+        if not (-0.5 < ru < 639.5 and -0.5 < rv < 479.5):
+            assert np.all(np.isinf(dist[n]))
+            continue
+        gr = int(np.clip(np.rint((rv - 2) / step), 0, rows.shape[0] - 1))
+        gc = int(np.clip(np.rint((ru - 2) / step), 0, rows.shape[1] - 1))
+        expected = sorted(np.linalg.norm(xyz[cell_of[(gr + a, gc + b)]] - p[n])
+                          for a in range(-r, r + 1) for b in range(-r, r + 1) if (gr + a, gc + b) in cell_of)
+        got = np.sort(dist[n][np.isfinite(dist[n])])
+        np.testing.assert_allclose(got, expected, rtol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(target.xyz[idx[n]] - p[n], axis=1)[np.isfinite(dist[n])],
+                                   dist[n][np.isfinite(dist[n])], rtol=1e-12)
+    near_dist, _ = target.query(p, 1)                               # k = 1: the window's nearest
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_array_equal(near_dist[:, 0], dist.min(axis=1))

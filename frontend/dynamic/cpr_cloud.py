@@ -17,6 +17,7 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
+from frontend.dynamic.cpr_assoc import ProjectiveGrid, ProjectiveTarget
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import CprConfig
 
@@ -195,6 +196,7 @@ class Cloud:
     dense_i: Optional[np.ndarray] = None
     _tree: Optional[cKDTree] = field(default=None, repr=False)
     _target: Optional["Cloud"] = field(default=None, repr=False)
+    _projective: Optional[ProjectiveTarget] = field(default=None, repr=False)
 
     @property
     def tree(self) -> cKDTree:
@@ -202,6 +204,24 @@ class Cloud:
         if self._tree is None:
             self._tree = cKDTree(self.xyz, **_TREE_OPTIONS)
         return self._tree
+
+    def query(self, p: np.ndarray, k: int, clamp: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` nearest points of each of ``p`` (n, 3): (dist (n, k), idx (n, k)); the interface of
+        ``cpr_assoc.ProjectiveTarget`` (every candidate exists here, ``clamp`` has no meaning)."""
+        dist, idx = self.tree.query(p, k=k)
+        return (dist[:, None], idx[:, None]) if k == 1 else (dist, idx)
+
+    def projective_target(self, grid: ProjectiveGrid) -> ProjectiveTarget:
+        """The registration target for projective association: the same dense points as ``target()``, on
+        their sampling grid (no tree). Built once and cached."""
+        if self._projective is None:
+            kept = self.sample_point >= 0
+            if self.dense_xyz is None:                 # a cloud without dense points: its own points
+                self._projective = ProjectiveTarget(grid, self.sample_pix[kept], self.xyz[self.sample_point[kept]],
+                                                    self.intensity[self.sample_point[kept]])
+            else:
+                self._projective = ProjectiveTarget(grid, self.sample_pix[kept], self.dense_xyz, self.dense_i)
+        return self._projective
 
     def target(self) -> "Cloud":
         """The cloud a later frame registers against: the depth samples projected on their voxel's MLS

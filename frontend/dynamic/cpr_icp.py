@@ -197,20 +197,33 @@ def sub_poses(src: np.ndarray, src_i: np.ndarray, labels: np.ndarray, k: int, re
             p = _apply(poses, lab_s, p0[ids])
             seg = _segments(lab_s, k)
             if intensity_stage and n_cand > 1:
-                dist, idx = ref.tree.query(p, k=n_cand)
+                dist, idx = ref.query(p, n_cand)
                 r_i = np.abs(i0[ids][:, None] - ref_i[idx])
-                rows = _Rows(seg * n_cand)             # a sub-cloud's scale covers all its candidates
-                sg = rows.robust_scales(dist.reshape(-1), _SCALE_FLOOR_GEOM)[lab_s, None]
-                si = rows.robust_scales(r_i.reshape(-1), _SCALE_FLOOR_INTENSITY)[lab_s, None]
+                ok = np.isfinite(dist)                 # projective: window cells without a sample
+                if ok.all():
+                    rows, dv, iv = _Rows(seg * dist.shape[1]), dist.reshape(-1), r_i.reshape(-1)
+                else:                                  # scales over the existing candidates only
+                    rows = _Rows(np.concatenate([[0], np.cumsum(np.bincount(lab_s, ok.sum(axis=1), k))]).astype(np.int64))
+                    dv, iv = dist[ok], r_i[ok]
+                # a sub-cloud's scale covers all its candidates
+                sg = rows.robust_scales(dv, _SCALE_FLOOR_GEOM)[lab_s, None]
+                si = rows.robust_scales(iv, _SCALE_FLOOR_INTENSITY)[lab_s, None]
                 w = t_weight(dist, sg, nu) * t_weight(r_i, si, nu)
+                w[~ok] = -1.0
                 best = np.argmax(w, axis=1)
                 pts = np.arange(len(p))
                 q = ref_xyz[idx[pts, best]]
-                wt = w[pts, best]
+                wt = np.maximum(w[pts, best], 0.0)     # a point without candidates: weight 0
             else:
-                dist, idx = ref.tree.query(p, k=1)
+                dist, idx = ref.query(p, 1)
+                dist, idx = dist[:, 0], idx[:, 0]
                 q = ref_xyz[idx]
-                wt = t_weight(dist, _Rows(seg).robust_scales(dist, _SCALE_FLOOR_GEOM)[lab_s], nu)
+                ok = np.isfinite(dist)
+                if ok.all():
+                    wt = t_weight(dist, _Rows(seg).robust_scales(dist, _SCALE_FLOOR_GEOM)[lab_s], nu)
+                else:
+                    scale = _Rows(_segments(lab_s[ok], k)).robust_scales(dist[ok], _SCALE_FLOOR_GEOM)
+                    wt = np.where(ok, t_weight(np.where(ok, dist, 0.0), scale[lab_s], nu), 0.0)
             delta = _kabsch(p, q, wt, seg, active)
             poses = delta @ poses
             moved = np.linalg.norm(delta[:, :3, 3], axis=1)
@@ -239,12 +252,23 @@ def correlation_scores(src: np.ndarray, src_i: np.ndarray, poses: np.ndarray, re
     # same; they go back to pose-major before the means (the same summation order as before).
     moved = np.ascontiguousarray(moved.transpose(1, 0, 2))
     n_cand = int(min(max(1, cfg.score_candidates), len(ref)))
-    dist, idx = ref.tree.query(moved.reshape(-1, 3), k=n_cand)
-    if n_cand == 1:
-        dist, idx = dist[:, None], idx[:, None]
+    dist, idx = ref.query(moved.reshape(-1, 3), n_cand, clamp=True)
+    cap = cfg.score_max_distance
+    if cap > 0:
+        # A point's distance counts at most ``cap``: projective candidates lie on its ray, so a point off every
+        # surface (people that moved, occlusions) would add the depth gap behind it (metres) and swamp R.
+        # inf (no such candidate) stays inf; a point without any candidate (a hole, outside the view) costs cap.
+        dist = np.where(dist > cap, np.where(np.isinf(dist), np.inf, cap), dist)
     cost = dist + np.abs(np.repeat(si, k)[:, None] - ref.intensity[idx])
-    best = np.ascontiguousarray(cost.min(axis=1).reshape(-1, k).T)
-    return best.mean(axis=1)
+    point = cost.min(axis=1)
+    if cap > 0:
+        point[np.isinf(point)] = cap
+    best = np.ascontiguousarray(point.reshape(-1, k).T)
+    ok = np.isfinite(best)
+    if ok.all():
+        return best.mean(axis=1)
+    # no cap: a point without a candidate has no correspondence and is left out of that pose's mean
+    return np.where(ok, best, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
 
 
 def mad_threshold(r: np.ndarray, scale: float = 1.4826) -> float:

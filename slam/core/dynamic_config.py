@@ -74,7 +74,7 @@ class CprConfig(ConfigSection):
     clusters: int = Field(10, ge=1)
     sigma_frame: int = Field(2, ge=1)   # frames back to the reference
     sigma_keyframe: int = Field(5, ge=1)
-    candidates: int = Field(10, ge=1)
+    candidates: int = Field(10, ge=1)   # kdtree; projective: 1 = the window's nearest, more = the window
     student_nu: float = Field(5.0, gt=0)   # Student-t degrees of freedom
     icp_iterations: int = Field(6, ge=1)
     mad_scale: float = Field(1.4826, gt=0)
@@ -92,7 +92,18 @@ class CprConfig(ConfigSection):
     score_points: int = Field(800, ge=1)
     """Source points averaged in R(j)."""
     score_candidates: int = Field(4, ge=1)
-    """Nearest reference points searched per point for R(j)."""
+    """Nearest reference points searched per point for R(j) (kdtree; projective: 1 = the window's nearest,
+    more = the whole window)."""
+    association: Literal["projective", "kdtree"] = "projective"
+    """Candidates for the ICP and R(j): reference samples in a pixel window around the projection (O(1), no
+    tree) or the exact nearest neighbours in 3-D (the paper; ~15 ms more per frame on Bonn). See cpr.py."""
+    projective_window: int = Field(1, ge=1, le=4)
+    """projective: window half-width in sampling-grid cells ((2w+1)^2 candidates; 1 = 9, like the
+    paper's 10 nearest); above 4 the window spans more than +-16 px: the projection is no longer local."""
+    score_max_distance: float = Field(0.05, ge=0, le=1.0)
+    """R(j): a point's distance counts at most this (m; 0 = unbounded, the paper). Projective candidates lie
+    on the point's ray, so a point off every surface (moved people, occlusions) would otherwise add the
+    depth gap behind it, metres; 5 cm = one voxel. Above 1 m it bounds nothing in a room."""
     min_score_ratio: float = Field(1.0, ge=0)
     """Dynamic also needs R(j) > ratio * median(R); 1.0 (or less) = the paper only."""
     refine: bool = False
