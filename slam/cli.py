@@ -69,6 +69,8 @@ def cmd_run(args) -> int:
     from slam.run.sources import frames_to_run, open_live, open_recorded
 
     overrides = _parse_overrides(args.set)
+    if args.realtime:
+        overrides["runtime.realtime"] = True
     opener = open_live if is_live_source(args.dataset) else open_recorded
     dataset, config = opener(args.dataset, args.config, overrides, args.output)
     with contextlib.ExitStack() as stack:
@@ -272,6 +274,10 @@ def _slam_parsers(sub) -> None:
     run.add_argument("--blackout", metavar="START:COUNT",
                      help="fault injection: blank COUNT frames from frame START (tests recovery)")
     run.add_argument("--save-map", metavar="PATH", help="save the final map to PATH (.npz, written atomically)")
+    run.add_argument("--realtime", action="store_true",
+                     help="realtime mode (runtime.realtime; a live camera's default): replay a recording at its "
+                          "recorded rate, dropping frames SLAM has no time for (summary.json: dropped_frames), "
+                          "and never wait for the back end; not deterministic")
     run.add_argument("--load-map", metavar="PATH",
                      help="localisation only: track against the map saved at PATH, which stays unchanged")
     _viz_options(run)

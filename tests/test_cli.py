@@ -310,6 +310,35 @@ def test_run_max_frames(capsys, synthetic_folder, tmp_path):
     assert "12 frames" in out
 
 
+def test_run_realtime_replays_at_the_recorded_rate_and_reports_dropped_frames(capsys, synthetic_folder, tmp_path):
+    """--realtime: the 30 frames (1 s at 30 fps) are offered at their recorded times, so the run lasts at
+    least the recording; whatever this machine drops is counted, and the frames processed are all written."""
+    code, out, _ = run_cli(capsys, "run", synthetic_folder, "-o", tmp_path / "out", "-q", "-c", "static",
+                           "--realtime", "--set", "output.report=false")
+    assert code == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["realtime"] is True and isinstance(summary["dropped_frames"], int)
+    assert summary["frames"] + summary["dropped_frames"] == 30
+    assert summary["wall_time_s"] >= 29 / 30 * 0.95   # the last frame is due 29 intervals after the first
+    assert yaml.safe_load((tmp_path / "out" / "config.yaml").read_text())["runtime"]["realtime"] is True
+    assert len(data_lines(tmp_path / "out" / "trajectory.txt")) == summary["frames"]
+    assert ("dropped" in out) if summary["dropped_frames"] else ("realtime: no frame dropped" in out)
+
+
+def test_run_help_explains_realtime(capsys):
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--realtime" in text and "dropped_frames" in text and "not deterministic" in text
+
+
+def test_recordings_run_in_dataset_mode_by_default(synthetic_run):
+    _, out_dir = synthetic_run
+    assert yaml.safe_load((out_dir / "config.yaml").read_text())["runtime"]["realtime"] is False
+    summary = json.loads((out_dir / "summary.json").read_text())
+    assert summary["realtime"] is False and summary["dropped_frames"] is None
+
+
 def test_dynamic_run_writes_per_frame_flag_counts(tmp_path):
     """A run with a detector-free dynamic method writes dynamic.csv with one row per frame."""
     from slam.cli import main

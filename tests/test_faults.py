@@ -233,14 +233,17 @@ def session_processes(sid: int) -> list[int]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
-def test_ctrl_c_at_a_terminal_stops_every_process_and_writes_complete_files(tum_folder, tmp_path):
+@pytest.mark.parametrize("mode", ["dataset", pytest.param("realtime", marks=pytest.mark.slow)])
+def test_ctrl_c_at_a_terminal_stops_every_process_and_writes_complete_files(tum_folder, tmp_path, mode):
     """A terminal's Ctrl-C reaches the whole process group, the mapping worker included: exit 130,
-    complete final files (the worker finished the last updates first), and no process left behind."""
+    complete final files (the worker finished the last updates first), and no process left behind.
+    The same in realtime mode, where the worker was never waited for before the end."""
     out, err = tmp_path / "out", tmp_path / "stderr.txt"
+    realtime = ["--realtime"] if mode == "realtime" else []
     with err.open("w") as stderr:
         process = subprocess.Popen([sys.executable, "-m", "slam.cli", "run", str(tum_folder), "-o", str(out), "-q",
                                     "--set", "output.report=false", "--set", "backend.worker_process=true",
-                                    "--set", "backend.optimizer=window"], cwd=REPO, stdout=subprocess.DEVNULL,
+                                    "--set", "backend.optimizer=window", *realtime], cwd=REPO, stdout=subprocess.DEVNULL,
                                    stderr=stderr, start_new_session=True,
                                    preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:

@@ -1,7 +1,9 @@
 """GraphProcess: the graph solved in a worker process, with results applied at fixed points.
 
 Same calls, same numbers as the graph in process (once synced); results lag by exactly one update;
-a failure in the worker or a dead worker is a clear BackendError; close() leaves no process behind."""
+a failure in the worker or a dead worker is a clear BackendError; close() leaves no process behind.
+Realtime mode: nothing waits, updates made while the worker is busy are folded into one, and after
+sync() every keyframe and landmark is estimated as in dataset mode."""
 from __future__ import annotations
 
 import multiprocessing as mp
@@ -9,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -17,7 +20,7 @@ from backend.factors import BackendError
 from backend.local_mapping import build_graph
 from conftest import REPO, RING_CALIBRATION, run_ring
 from slam.core.config import BackendConfig
-from slam.runtime.graph_process import GraphProcess, GraphSpec
+from slam.runtime.graph_process import GraphProcess, GraphSpec, _fold_updates
 
 
 def _spec(**fields) -> GraphSpec:
@@ -148,6 +151,111 @@ def test_worker_ignores_ctrl_c():
         assert list(graph.keyframe_poses()[0]) == [0, 1]
     finally:
         graph.close()
+
+
+# --- realtime mode ---------------------------------------------------------------------------------
+
+@pytest.fixture
+def realtime_graph():
+    graph = GraphProcess(_spec(window_keyframes=4), realtime=True)
+    yield graph
+    graph.close()
+
+
+class _BusyWorker:
+    """The worker's pipe as seen while the worker is still solving: no result is ready to read unless
+    the caller is prepared to wait (sync). Counts the batches sent."""
+
+    def __init__(self, conn):
+        self.conn, self.sent = conn, 0
+
+    def poll(self, timeout: float = 0.0) -> bool:
+        return self.conn.poll(timeout) if timeout > 0 else False
+
+    def send(self, batch) -> None:
+        self.sent += 1
+        self.conn.send(batch)
+
+    def __getattr__(self, name):
+        return getattr(self.conn, name)
+
+
+def test_realtime_update_returns_at_once_and_the_result_arrives_by_polling(realtime_graph):
+    realtime_graph.add_keyframe(0, np.eye(4))
+    realtime_graph.update()
+    assert len(realtime_graph.keyframe_poses()[0]) == 0          # sent, not waited for
+    deadline = time.monotonic() + 60
+    while not realtime_graph.poll():                             # no update() or sync() needed
+        assert time.monotonic() < deadline, "the worker's result never arrived"
+        time.sleep(0.002)
+    assert list(realtime_graph.keyframe_poses()[0]) == [0]
+    assert realtime_graph.waits == 0
+
+
+def test_realtime_folds_updates_while_the_worker_is_busy_and_sync_loses_nothing(realtime_graph):
+    """While the worker is busy every update is folded into the one waiting here (the worker never holds
+    more than one batch, nothing queues up); sync() sends it and waits: every keyframe and landmark is
+    then estimated, every handle agrees with the worker's, and the estimates are those of dataset mode."""
+    dataset = GraphProcess(_spec(window_keyframes=4))
+    try:
+        run_ring(dataset, 12, drift_deg=0.3)
+        dataset.sync()
+        busy = _BusyWorker(realtime_graph._conn)
+        realtime_graph._conn = busy
+        waiting_updates = []
+        update = realtime_graph.update
+
+        def update_and_count(*args, **kwargs):
+            update(*args, **kwargs)
+            waiting_updates.append(sum(c[0] == "update" for c in realtime_graph._batch))
+
+        realtime_graph.update = update_and_count
+        start = time.perf_counter()
+        run_ring(realtime_graph, 12, drift_deg=0.3)
+        assert time.perf_counter() - start < 5.0                 # nothing waited for the worker
+        assert busy.sent == 1 and realtime_graph.folded == 10    # the first update went; the other 11 wait as one
+        assert max(waiting_updates) == 1
+        assert realtime_graph.waits == 0
+        realtime_graph.sync()                                    # waits: for the first result, then the folded one
+        assert busy.sent == 2 and not realtime_graph._batch
+        np.testing.assert_array_equal(realtime_graph.keyframe_poses()[0], np.arange(12))
+        np.testing.assert_array_equal(realtime_graph.landmark_positions()[0], dataset.landmark_positions()[0])
+        # The ring's measurements agree with each other, so one adjustment of all keyframes (folded) and
+        # twelve windows (dataset mode) reach the same estimates up to the solver's tolerance.
+        np.testing.assert_allclose(realtime_graph.keyframe_poses()[1], dataset.keyframe_poses()[1], atol=1e-6)
+        np.testing.assert_allclose(realtime_graph.landmark_positions()[1], dataset.landmark_positions()[1], atol=1e-6)
+        assert realtime_graph.num_factors == dataset.num_factors
+    finally:
+        dataset.close()
+
+
+def test_folded_update_relinearises_if_any_asked_and_keeps_the_command_order():
+    batch = [("keyframe", 1, None), ("update", None, False), ("relative", 0, 1, None, 0.1, 1.0, None, 1.0, 5),
+             ("remove", [5])]
+    folded = _fold_updates(batch, ("update", 2, True))
+    assert [c[0] for c in folded] == ["keyframe", "relative", "remove", "update"]
+    assert folded[-1] == ("update", 2, True)
+    assert _fold_updates(folded[:-1] + [("update", None, True)], ("update", None, False))[-1] == ("update", None, True)
+    assert _fold_updates([("keyframe", 1, None)], ("update", None, False))[-1] == ("update", None, False)
+
+
+def test_realtime_loop_residual_does_not_wait(realtime_graph):
+    """A loop's residual is asked for right after its update: realtime answers (0, 0) rather than wait."""
+    realtime_graph.add_keyframe(0, np.eye(4))
+    realtime_graph.add_keyframe(1, np.eye(4))
+    realtime_graph.add_relative_pose(0, 1, np.eye(4), 0.05, 2.0)
+    realtime_graph.update()
+    realtime_graph.sync()
+    T_wrong = np.eye(4)
+    T_wrong[0, 3] = 1.0
+    loop = realtime_graph.add_relative_pose(0, 1, T_wrong, 0.02, 1.0, kernel="cauchy")
+    realtime_graph._conn = _BusyWorker(realtime_graph._conn)
+    waits = realtime_graph.waits   # the sync() above may have waited
+    realtime_graph.update(relinearize=True)
+    assert realtime_graph.relative_pose_error(loop) == (0.0, 0.0)
+    assert realtime_graph.waits == waits
+    realtime_graph.sync()
+    assert realtime_graph.relative_pose_error(loop)[0] > 0.5
 
 
 @pytest.mark.slow

@@ -208,6 +208,7 @@ def test_dynslam_run_realsense_drops_frames_and_stops_the_camera(monkeypatch, tm
     assert summary["dropped_frames"] == 8, "every other frame: the camera is twice as fast"
     config = (out / "config.yaml").read_text()
     assert "fx: 262.5" in config and "depth_scale: 4000.0" in config
+    assert summary["realtime"] is True and "realtime: true" in config, "a live camera runs in realtime mode"
     stamps = [float(line.split()[0]) for line in (out / "trajectory.txt").read_text().splitlines()
               if line and not line.startswith("#")]
     assert stamps == pytest.approx([1_700_000_000.0 + k / 30 for k in range(1, 16, 2)], abs=1e-6)

@@ -23,13 +23,13 @@ from pydantic import Field, ValidationError
 from slam.core.config_base import ConfigError, ConfigSection
 from slam.core.config_errors import Provenance, format_validation_error
 from slam.core.config_sections import (TRAJECTORY_FORMATS, BackendConfig, CameraConfig, KeyframeConfig,
-                                       MapExportConfig, OrbConfig, OutputConfig, TrackingConfig)
+                                       MapExportConfig, OrbConfig, OutputConfig, RuntimeConfig, TrackingConfig)
 from slam.core.dynamic_config import DynamicConfig
 from slam.core.loop_config import LoopConfig
 
 __all__ = ["CONFIG_DIR", "TRAJECTORY_FORMATS", "BackendConfig", "CameraConfig", "ConfigError", "DynamicConfig",
-           "KeyframeConfig", "Layer", "LoopConfig", "MapExportConfig", "OrbConfig", "OutputConfig", "SlamConfig",
-           "TrackingConfig", "apply_overrides", "apply_yaml", "build_config", "config_schema",
+           "KeyframeConfig", "Layer", "LoopConfig", "MapExportConfig", "OrbConfig", "OutputConfig", "RuntimeConfig",
+           "SlamConfig", "TrackingConfig", "apply_overrides", "apply_yaml", "build_config", "config_schema",
            "default_config_yaml", "load_config", "overrides_layer", "resolve_config_path", "validate", "yaml_layer"]
 
 
@@ -54,6 +54,7 @@ class SlamConfig(ConfigSection):
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
     backend: BackendConfig = Field(default_factory=BackendConfig)
+    runtime: RuntimeConfig = Field(default_factory=RuntimeConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
     dynamic: DynamicConfig = Field(default_factory=DynamicConfig)
     loop: LoopConfig = Field(default_factory=LoopConfig)

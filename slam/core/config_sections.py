@@ -1,4 +1,5 @@
-"""Config sections of the sensor, the ORB front end, tracking, keyframes, the back end, outputs and maps.
+"""Config sections of the sensor, the ORB front end, tracking, keyframes, the back end, the run's pacing,
+outputs and maps.
 
 Each limit sits beside its field with the reason it holds; rules between fields are model validators
 whose message says why. The dynamic front end and loop closing have their own modules
@@ -6,7 +7,7 @@ whose message says why. The dynamic front end and loop closing have their own mo
 """
 from __future__ import annotations
 
-from typing import Literal, get_args
+from typing import Literal, Optional, get_args
 
 from pydantic import Field, field_validator, model_validator
 
@@ -189,6 +190,20 @@ class BackendConfig(ConfigSection):
     dynamic_removal_threshold: float = Field(0.7, **_PROBABILITY)
     landmark_max_dynamic_prob: float = Field(0.25, **_PROBABILITY)
     """New landmarks only from features below this dynamic probability (stricter than tracking's)."""
+
+
+class RuntimeConfig(ConfigSection):
+    """How a run keeps pace with its source (slam.run.pipeline, slam.runtime.graph_process)."""
+
+    realtime: Optional[bool] = None
+    """true: realtime mode, nothing waits for SLAM and SLAM never waits for its back end. The graph
+    worker's (backend.worker_process) results are applied whenever they arrive (the keyframe that closes a loop does not wait for
+    its correction either), and a recording is replayed at its recorded rate: a frame whose successor is
+    already due when the system is ready is dropped (summary.json: dropped_frames). Not deterministic:
+    which frames are dropped and when results land depend on the machine's speed.
+    false: dataset mode, every frame processed and results applied at fixed points: the same input and
+    config give the same files byte for byte.
+    null (default): realtime for a live camera (it drops frames anyway), dataset mode for a recording."""
 
 
 class OutputConfig(ConfigSection):

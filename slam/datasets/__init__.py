@@ -8,6 +8,7 @@ from typing import Optional, Union
 from .base import RGBDDataset, RGBDFrame
 from .folder import INTRINSICS_FILE, ImageFolderDataset, is_image_folder, read_folder_intrinsics
 from .realsense_bag import RealSenseBagDataset, is_realsense_bag, read_realsense_camera
+from .replay import RealtimeReplay
 from .rosbag import RosbagDataset, is_rosbag, read_bag_camera
 from .synthetic import SyntheticSequence, write_tum_layout
 from .tum import (CAMERA_FILE, DatasetError, DatasetWarning, TumDataset, associate, guess_camera,
@@ -17,7 +18,7 @@ __all__ = [
     "RGBDDataset", "RGBDFrame", "SyntheticSequence", "write_tum_layout", "DatasetError", "DatasetWarning",
     "TumDataset", "associate", "guess_camera", "load_groundtruth", "read_intrinsics", "open_dataset",
     "RosbagDataset", "ImageFolderDataset", "is_rosbag", "is_image_folder", "read_camera",
-    "RealSenseBagDataset", "is_realsense_bag",
+    "RealSenseBagDataset", "is_realsense_bag", "RealtimeReplay",
 ]
 
 AnyDataset = Union[TumDataset, RosbagDataset, RealSenseBagDataset, ImageFolderDataset, SyntheticSequence]

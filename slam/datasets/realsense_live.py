@@ -73,6 +73,8 @@ class RealSenseCamera:
     streams. The device starts here, so ``intrinsics()`` is known before the first frame.
     """
 
+    live = True   # paced by the camera: runs in realtime mode unless runtime.realtime says false
+
     def __init__(self, serial: Optional[str] = None, width: int = 640, height: int = 480, fps: int = 30,
                  timeout_s: float = 5.0) -> None:
         rs = import_pyrealsense2()

@@ -30,7 +30,9 @@ with ``prior_map`` the run localises against that fixed map instead of building 
 Final files are written atomically. Ctrl-C stops the run after the frame being processed and every
 result is still written (``slam.run.interrupts``); ``summary.json`` then says ``"interrupted": true``.
 A live camera's frames that were never processed (it does not wait for SLAM) are counted in
-``summary.json``'s ``dropped_frames``.
+``summary.json``'s ``dropped_frames``. ``runtime.realtime`` (``--realtime``; on by default for a live
+camera) replays a recording at its recorded rate the same way (``slam.datasets.replay``, dropped frames
+counted alike) and never waits for the graph worker: not deterministic, unlike the default dataset mode.
 Frames are checked before processing (``slam.run.input_checks``): a colour image of the wrong size is
 skipped with a warning, frames without any depth are reported.
 ``FrameObserver``s (e.g. the rerun live view, ``slam.run.viz_rerun``) see every processed frame and the
@@ -50,6 +52,7 @@ import numpy as np
 from frontend.dynamic_filter import method_names
 from slam.core.config import SlamConfig
 from slam.datasets.base import RGBDDataset, RGBDFrame
+from slam.datasets.replay import RealtimeReplay
 from slam.run.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
 from slam.run.input_checks import InputChecks
 from slam.run.interrupts import DeferredInterrupt
@@ -80,8 +83,9 @@ class RunSummary:
     missing_files: list[str] = field(default_factory=list)    # listed but absent, found when opening
     no_depth_frames: list[int] = field(default_factory=list)  # frames without a single valid depth pixel
     interrupted: bool = False                                 # stopped (Ctrl-C) before the last frame
-    dropped_frames: Optional[int] = None                      # live camera: frames it gave that were never
-                                                              # processed (newest frame wins); None: a recording
+    dropped_frames: Optional[int] = None                      # live camera / realtime replay: frames never
+                                                              # processed (newest frame wins); None: dataset mode
+    realtime: bool = False                                    # runtime.realtime: paced by the source, not deterministic
     dynamic_methods: list[str] = field(default_factory=list)
     dynamic_flagged: dict[str, dict[str, float]] = field(default_factory=dict)  # per method and fused
     loops: list[dict[str, Any]] = field(default_factory=list)   # every loop factor added, with timestamps
@@ -89,6 +93,20 @@ class RunSummary:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def _paced(dataset, config: SlamConfig):
+    """(dataset, config) with ``runtime.realtime`` decided: null means realtime for a live camera only
+    (it drops frames whatever the system does); a recording in realtime mode is replayed at its recorded
+    rate (unless the caller already gave a replay, e.g. with its own clock). The caller's config is not
+    changed."""
+    live = bool(getattr(dataset, "live", False))
+    if config.runtime.realtime is None:
+        config = config.model_copy(deep=True)
+        config.runtime.realtime = live
+    if config.runtime.realtime and not live and not isinstance(dataset, RealtimeReplay):
+        dataset = RealtimeReplay(dataset)
+    return dataset, config
 
 
 class FrameObserver(Protocol):
@@ -114,7 +132,10 @@ class Pipeline:
                  save_map: Optional[Path | str] = None, prior_map=None, detector=None,
                  observers: Sequence[FrameObserver] = ()):
         """``detector``: a ``frontend.detector.Detector`` instead of the configured ONNX model (e.g.
-        ground-truth boxes of a generated sequence). ``observers`` see every frame and the end of the run."""
+        ground-truth boxes of a generated sequence). ``observers`` see every frame and the end of the run.
+        ``config.runtime.realtime`` null is decided here (realtime for a live camera); the config the run
+        uses and writes is ``self.config``."""
+        dataset, config = _paced(dataset, config)
         self.dataset = dataset
         self.observers = tuple(observers)
         self.config = config
@@ -132,7 +153,8 @@ class Pipeline:
                                  prior_words=places.bows if places else None)
         root = getattr(dataset, "root", None)
         self.summary = RunSummary(dataset=getattr(dataset, "name", "dataset"), output_dir=str(self.output_dir),
-                                  dataset_path=None if root is None else str(Path(root).resolve()))
+                                  dataset_path=None if root is None else str(Path(root).resolve()),
+                                  realtime=bool(config.runtime.realtime))
         self.report: Optional[EvaluationReport] = None
         self.artifacts = RunArtifacts(self.output_dir, config, needs_keyframe_copies(dataset))  # export inputs
         self.checks = InputChecks(config.camera.width, config.camera.height, getattr(dataset, "name", "dataset"))
@@ -342,7 +364,10 @@ class Pipeline:
         timing = ", ".join(f"{name} {v['median_ms']:.1f}" for name, v in s.timing_ms.items())
         lines.append(f"median ms/frame: {timing}")
         if s.dropped_frames:
-            lines.append(f"dropped {s.dropped_frames} camera frames (processing was slower than the camera)")
+            source = "camera" if getattr(self.dataset, "live", False) else "recording's frame rate"
+            lines.append(f"dropped {s.dropped_frames} frames (processing was slower than the {source})")
+        elif s.realtime:
+            lines.append("realtime: no frame dropped")
         if self.report is not None:
             lines.append(format_report(self.report))
         lines.append(f"results: {self.output_dir}")

@@ -13,6 +13,15 @@ processes: the same input and config give the same trajectory byte for byte. Unt
 new keyframes and landmarks keep the poses tracking gave them, as they would in ORB-SLAM while its local
 bundle adjustment runs.
 
+Realtime mode (``realtime=True``, ``runtime.realtime``): nothing ever waits for the worker except
+``sync()`` / ``optimize_all()``. ``update()`` hands the batch over only if the worker is free; otherwise
+the commands stay here and the update is folded into the next one (one update with every command since,
+``relinearize`` if any asked for it), which goes out as soon as the worker is free. So the worker holds
+at most one batch, and the commands waiting here are those of the keyframes made while it was busy.
+Results are applied whenever they have arrived (``poll()``: at each update, and at each frame by the
+System). The window back end adjusts every keyframe added since its last update, so a folded update
+loses no keyframe; which results tracking sees now depends on timing, so runs are not deterministic.
+
 Factor handles are counted here the way the graph counts them (one per factor, priors included) and the
 worker checks that they agree, so removal by handle needs no round trip. A loop factor the worker has not
 solved yet has no residual to report: ``relative_pose_error`` says (0, 0) until its first result comes back.
@@ -119,8 +128,9 @@ def _apply(graph: GraphBackend, command: tuple):
 class GraphProcess:
     """A GraphBackend whose solving runs in a worker process (see the module docstring)."""
 
-    def __init__(self, spec: GraphSpec):
+    def __init__(self, spec: GraphSpec, realtime: bool = False):
         self.spec = spec
+        self.realtime = realtime
         self._landmark_prior = BackendParams.from_config(spec.config).landmark_prior_sigma > 0
         # forkserver: the worker is forked from a clean server process (not from this one, whose
         # detector and OpenCV threads a fork would copy mid-state), and the server has the back end's
@@ -152,6 +162,7 @@ class GraphProcess:
         self._kf_ids, self._kf_poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
         self._lm_ids, self._lm_xyz = np.zeros(0, np.int64), np.zeros((0, 3))
         self.waits = 0          # updates that found the worker still busy (tracking waited)
+        self.folded = 0         # realtime: updates folded into a later one (the worker was busy)
 
     # --- variables ------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, T_wc_guess: np.ndarray) -> None:
@@ -205,7 +216,10 @@ class GraphProcess:
         if handle not in self._relative:
             raise BackendError(f"factor handle {handle} is not a live relative-pose factor")
         if handle not in self._solved_relative and handle in self._sent_relative and self._in_flight:
-            self._collect()   # its update was sent: wait for it (a check right after adding a loop)
+            if self.realtime:
+                self.poll()       # never wait: if its result is not back yet, it has no residual yet
+            else:
+                self._collect()   # its update was sent: wait for it (a check right after adding a loop)
         if handle not in self._solved_relative:
             return 0.0, 0.0
         a, b, T_ab = self._relative[handle]
@@ -225,9 +239,31 @@ class GraphProcess:
 
     # --- solving --------------------------------------------------------------------------------
     def update(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
-        """Apply the previous update's result (waiting only if it is not ready), then send this batch."""
-        self._collect()
-        self._send(("update", extra_updates, relinearize))
+        """Apply the previous update's result (waiting only if it is not ready), then send this batch.
+        Realtime: apply a result only if it has arrived, send the batch only if the worker is free (else
+        fold this update into the next one); never waits."""
+        command = ("update", extra_updates, relinearize)
+        if not self.realtime:
+            self._collect()
+            self._send(command)
+            return
+        self.folded += any(c[0] == "update" for c in self._batch)
+        self._batch = _fold_updates(self._batch, command)
+        self.poll()
+
+    def poll(self) -> bool:
+        """Realtime: apply the result in flight if it has arrived, then hand the worker the waiting
+        update if it is free; never waits. Returns whether new estimates were applied. In dataset mode a
+        no-op (results are applied at fixed points only, see the module docstring)."""
+        if not self.realtime:
+            return False
+        applied = False
+        if self._in_flight and self._conn.poll(0):   # a dead worker's closed pipe also polls ready
+            self._collect()
+            applied = True
+        if not self._in_flight:
+            self._send_waiting()
+        return applied
 
     def optimize_all(self, iterations: Optional[int] = None) -> None:
         """Synchronous: the whole-map adjustment, for the end of a run."""
@@ -236,8 +272,11 @@ class GraphProcess:
         self._collect()
 
     def sync(self) -> None:
-        """Wait for the update in flight and apply it (the end of a run, or a test)."""
+        """Wait for the update in flight and apply it (the end of a run, or a test); realtime: also send
+        the update still waiting here and wait for its result."""
         self._collect()
+        if self._send_waiting():
+            self._collect()
 
     def close(self) -> None:
         """Stop the worker (after ``sync()`` if its last result is wanted); safe to call twice."""
@@ -278,7 +317,21 @@ class GraphProcess:
     # --- helpers --------------------------------------------------------------------------------
     def _send(self, command: tuple) -> None:
         batch, self._batch = self._batch + [command], []
-        self._sent_relative = set(self._relative)
+        self._send_batch(batch)
+
+    def _send_waiting(self) -> bool:
+        """Realtime: send the commands up to the waiting (folded) update, if there is one; the commands
+        recorded after it wait for the next update. Returns whether a batch was sent."""
+        ends = [i for i, command in enumerate(self._batch) if command[0] == "update"]
+        if not ends:
+            return False
+        batch, self._batch = self._batch[:ends[-1] + 1], self._batch[ends[-1] + 1:]
+        self._send_batch(batch)
+        return True
+
+    def _send_batch(self, batch: list[tuple]) -> None:
+        # Relative factors recorded after the batch's update (realtime) are not in it: they wait.
+        self._sent_relative = set(self._relative) - {c[-1] for c in self._batch if c[0] == "relative"}
         try:
             self._conn.send(batch)
         except (BrokenPipeError, OSError) as exc:
@@ -319,3 +372,17 @@ class GraphProcess:
         self._next_handle += 1
         self._live.add(handle)
         return handle
+
+
+def _fold_updates(batch: list[tuple], command: tuple) -> list[tuple]:
+    """``batch`` + the update ``command``, with the update still waiting in ``batch`` (if any) folded
+    into it: one update covers every command since the last one sent (the window back end adjusts every
+    keyframe added since; iSAM2 takes the new factors at once). It relinearises if any of them asked,
+    with the most ``extra_updates`` asked for (None: the graph's default)."""
+    earlier = [c for c in batch if c[0] == "update"]
+    if not earlier:
+        return batch + [command]
+    updates = earlier + [command]
+    extra = [c[1] for c in updates if c[1] is not None]
+    folded = ("update", max(extra) if extra else None, any(c[2] for c in updates))
+    return [c for c in batch if c[0] != "update"] + [folded]
