@@ -64,8 +64,11 @@ def test_loops_found_and_true(runs, name):
     # A loop whose keyframe lies outside the ground truth's time span cannot be checked (Bonn's ground
     # truth starts after the first images); at least the minimum must be checkable.
     assert len(result.loop_checks) >= result.case.min_loops
-    false = [(c.query_t, c.match_t, round(c.error_t, 3), round(c.error_deg, 2)) for c in result.loop_checks if c.false]
-    assert not false, f"loops off ground truth by more than 10 cm / 5 deg: {false}"
+    # Loops the run keeps (tools/accuracy.py says why removed ones are not counted); at least one kept.
+    kept = [c for c in result.loop_checks if c.active]
+    assert kept, f"{result.case.label}: every loop was removed again"
+    false = [(c.query_t, c.match_t, round(c.error_t, 3), round(c.error_deg, 2)) for c in kept if c.false]
+    assert not false, f"kept loops off ground truth by more than 10 cm / 5 deg: {false}"
 
 
 def test_bonn_dynamic_handling_at_least_20x_better_than_off(runs):

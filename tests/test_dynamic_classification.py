@@ -18,8 +18,8 @@ from slam.run.dynamic_eval import boundary_band, classify_synthetic, synthetic_c
 from conftest import report_figures
 
 METHODS = ("cpr", "box_depth", "flow_epipolar", "depth_sdf")
-MEASURED = {  # precision, recall (2026-11-24)
-    "cpr": (0.751, 0.927), "box_depth": (1.000, 0.967), "flow_epipolar": (0.866, 0.766),
+MEASURED = {  # precision, recall (2026-11-24; cpr 2026-11-25 with projective association, was 0.751 / 0.927)
+    "cpr": (0.830, 0.927), "box_depth": (1.000, 0.967), "flow_epipolar": (0.866, 0.766),
     "depth_sdf": (0.917, 0.941), "fused": (0.944, 0.998),
 }
 REGRESSION_MARGIN = 0.85

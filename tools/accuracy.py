@@ -178,10 +178,15 @@ def gates(results: dict[str, CaseResult]) -> list[Gate]:
         if c.min_loops:
             out.append(Gate(f"{c.label}: loops found", len(r.summary["loops"]), c.min_loops,
                             len(r.summary["loops"]) >= c.min_loops, "about half of those found today"))
-        false = [lc for lc in r.loop_checks if lc.false]
+        # Counted among the loops the run keeps: a loop the consistency check removed again had its
+        # correction taken back (backend/window_loops.py). The early short-range loop of fr1/rpy is
+        # 6-10 cm off in every back end (PnP's rotation/translation ambiguity at one depth) and is
+        # removed in each; the table's "worst loop" column still shows every loop's error.
+        kept = [lc for lc in r.loop_checks if lc.active]
+        false = [lc for lc in kept if lc.false]
         if r.summary.get("loops") and c.baseline_ate is not None:   # the "off" cases are no claim
-            out.append(Gate(f"{c.label}: false loops (of {len(r.loop_checks)} checked)", len(false), 0, not false,
-                            "every loop within 10 cm / 5 deg of ground truth"))
+            out.append(Gate(f"{c.label}: false loops kept (of {len(kept)} kept, {len(r.loop_checks)} checked)",
+                            len(false), 0, not false, "every loop the run keeps within 10 cm / 5 deg of ground truth"))
     out += _relations(results)
     return out
 
@@ -213,7 +218,7 @@ def format_tables(results: dict[str, CaseResult], checks: list[Gate], identical:
         if r.returncode != 0:
             lines.append(f"| {r.case.label} | `{command}` | failed ({r.returncode}) | | | | | | |")
             continue
-        false = sum(lc.false for lc in r.loop_checks)
+        false = sum(lc.false for lc in r.loop_checks)   # all checked loops, removed ones included
         ms = s["timing_ms"].get("total", {}).get("median_ms", float("nan"))
         worst = (f"{max(lc.error_t for lc in r.loop_checks) * 100:.1f} cm / "
                  f"{max(lc.error_deg for lc in r.loop_checks):.1f}°") if r.loop_checks else "–"
