@@ -44,11 +44,15 @@ class WindowParams:
     window_keyframes: int = 6
     iterations: int = 10
     pose_graph_iterations: int = 30
-    loop_iterations: int = 10      # the bundle adjustment over a loop's span after its pose graph (0: none)
+    loop_iterations: int = 5      # the bundle adjustment over a loop's span after its pose graph (0: none)
     # A loop's bundle adjustment: 60 keyframes cover the loops of the TUM/Bonn sequences whole (~2 s, the
     # one wait of a loop keyframe); with 24 the drift room of tests/test_loop_closing.py kept a wrong
     # loop (0.24 m ATE before the final adjustment).
     loop_max_keyframes: int = 60
+    # The pose graph of a loop reaches back at most this many keyframes (the loops of the TUM/Bonn
+    # sequences span <= 100 and are corrected whole). Unbounded, a loop to a place seen laps ago cost
+    # O(map): on the generated orbit the loop keyframes' wait grew from 0.5 s to 2.8 s over 2,500 frames.
+    loop_max_span: int = 150
     max_undoable_loops: int = 16   # newest loops whose correction removal can take back exactly
     final_iterations: int = 20   # optimize_all: from windows that each stopped early, to convergence
     final_max_keyframes: int = 300

@@ -64,6 +64,8 @@ class LoopCorrection:
         n = len(self._poses)
         ids, before = self._poses.ids[:n].copy(), self._poses.values[:n].copy()
         start = int(ids.min()) if span_start is None else span_start
+        if n > self.window.loop_max_span:   # the older part already agrees with the loops closed before
+            start = max(start, int(np.sort(ids)[-self.window.loop_max_span]))
         in_span = ids >= start
         span = {int(k) for k in ids[in_span]}
         handles = {h for k in span for h in self._kf_relative[k] if h in self._relative}
