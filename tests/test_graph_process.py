@@ -63,15 +63,20 @@ def test_results_arrive_one_update_later(process_graph):
     np.testing.assert_allclose(poses[1], T1, atol=1e-9)
 
 
-def test_unsolved_loop_reports_no_residual_until_its_result_arrives(process_graph):
-    process_graph.add_keyframe(0, np.eye(4))
-    process_graph.add_keyframe(1, np.eye(4))
-    process_graph.add_relative_pose(0, 1, np.eye(4), 0.05, 2.0)
-    process_graph.update()
-    process_graph.sync()
+def _solved_pair_with_wrong_loop(graph) -> int:
+    """Two keyframes tied by odometry and solved, then a loop 1 m off between them (not solved yet)."""
+    graph.add_keyframe(0, np.eye(4))
+    graph.add_keyframe(1, np.eye(4))
+    graph.add_relative_pose(0, 1, np.eye(4), 0.05, 2.0)
+    graph.update()
+    graph.sync()
     T_wrong = np.eye(4)
     T_wrong[0, 3] = 1.0
-    loop = process_graph.add_relative_pose(0, 1, T_wrong, 0.02, 1.0, kernel="cauchy")
+    return graph.add_relative_pose(0, 1, T_wrong, 0.02, 1.0, kernel="cauchy")
+
+
+def test_unsolved_loop_reports_no_residual_until_its_result_arrives(process_graph):
+    loop = _solved_pair_with_wrong_loop(process_graph)
     assert process_graph.relative_pose_error(loop) == (0.0, 0.0)
     process_graph.update(relinearize=True)
     process_graph.sync()
@@ -241,14 +246,7 @@ def test_folded_update_relinearises_if_any_asked_and_keeps_the_command_order():
 
 def test_realtime_loop_residual_does_not_wait(realtime_graph):
     """A loop's residual is asked for right after its update: realtime answers (0, 0) rather than wait."""
-    realtime_graph.add_keyframe(0, np.eye(4))
-    realtime_graph.add_keyframe(1, np.eye(4))
-    realtime_graph.add_relative_pose(0, 1, np.eye(4), 0.05, 2.0)
-    realtime_graph.update()
-    realtime_graph.sync()
-    T_wrong = np.eye(4)
-    T_wrong[0, 3] = 1.0
-    loop = realtime_graph.add_relative_pose(0, 1, T_wrong, 0.02, 1.0, kernel="cauchy")
+    loop = _solved_pair_with_wrong_loop(realtime_graph)
     realtime_graph._conn = _BusyWorker(realtime_graph._conn)
     waits = realtime_graph.waits   # the sync() above may have waited
     realtime_graph.update(relinearize=True)
