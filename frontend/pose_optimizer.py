@@ -4,14 +4,20 @@ Gauss-Newton on SE(3) with a Huber kernel, run in rounds: after each round every
 classified by its chi-square (7.815 for 3-DOF stereo, 5.991 for 2-DOF mono) and outliers are left
 out of the next round, but re-tested, so a point wrongly rejected early can come back. The robust
 kernel is dropped in the last rounds, as ORB-SLAM does, once outliers are gone.
+
+An optional prior (the motion model's prediction with a per-axis sigma) joins the normal equations as
+one more Gaussian factor. The result also says how well the inliers alone fix the position (``sigma_t``):
+a far wall is all a person filling the view may leave, and depth noise grows with z^2, so the forward
+translation can be loose although every inlier agrees.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
-from slam.core.geometry import orthonormalize, se3_exp
+from slam.core.geometry import invert, orthonormalize, se3_exp, se3_log
 
 
 @dataclass
@@ -23,10 +29,17 @@ class PoseObservations:
 
 
 @dataclass
+class PosePrior:
+    T_cw: np.ndarray         # the predicted pose
+    information: np.ndarray  # (6,) 1/sigma^2 per twist axis (rotation rad, then translation m)
+
+
+@dataclass
 class PoseResult:
     T_cw: np.ndarray
     inliers: np.ndarray     # (N,) bool
     chi2: np.ndarray        # (N,)
+    sigma_t: float = float("inf")   # largest translation standard deviation the inliers alone allow (m)
 
 
 def _residuals_and_jacobians(T_cw, obs: PoseObservations, fx, fy, cx, cy, bf):
@@ -57,7 +70,8 @@ def _residuals_and_jacobians(T_cw, obs: PoseObservations, fx, fy, cx, cy, bf):
 
 
 def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: int = 10, rounds: int = 4,
-                  chi2_mono: float = 5.991, chi2_stereo: float = 7.815) -> PoseResult:
+                  chi2_mono: float = 5.991, chi2_stereo: float = 7.815,
+                  prior: Optional[PosePrior] = None) -> PoseResult:
     """Refine T_cw; returns the pose, the inlier mask and each observation's final chi-square."""
     fx, fy, cx, cy, bf = camera.fx, camera.fy, camera.cx, camera.cy, camera.bf
     n = len(obs.points_w)
@@ -79,6 +93,10 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
             Jw = (J * w[:, None, None]).reshape(-1, 6)
             H = Jw.T @ J.reshape(-1, 6)
             b = Jw.T @ e.reshape(-1)
+            if prior is not None:
+                # Residual log(T_prior T^-1) shrinks by the step (left twist): J = I for this factor.
+                H = H + np.diag(prior.information)
+                b = b + prior.information * se3_log(prior.T_cw @ invert(T))
             try:
                 step = np.linalg.solve(H + 1e-9 * np.eye(6), b)
             except np.linalg.LinAlgError:
@@ -91,4 +109,20 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
         active = (chi2 <= threshold) & (depth > 1e-3)
         if active.sum() < 10:
             break
-    return PoseResult(orthonormalize(T), active, chi2)
+    return PoseResult(orthonormalize(T), active, chi2, _translation_sigma(T, obs, active, fx, fy, cx, cy, bf))
+
+
+def _translation_sigma(T, obs: PoseObservations, inliers: np.ndarray, fx, fy, cx, cy, bf) -> float:
+    """sqrt of the largest eigenvalue of the translation block of the points-only covariance (H^-1): how
+    far along its weakest direction the inliers let the camera slide (the prior left out: it says how
+    well the map alone places the frame)."""
+    if inliers.sum() < 3:
+        return float("inf")
+    _, J, _, _ = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
+    Jw = (J * (obs.information * inliers)[:, None, None]).reshape(-1, 6)
+    H = Jw.T @ J.reshape(-1, 6)
+    try:
+        covariance = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return float(np.sqrt(max(np.linalg.eigvalsh(covariance[3:, 3:]).max(), 0.0)))

@@ -5,7 +5,8 @@ Per frame (ORB-SLAM's Track() split into short steps):
    projection (its landmarks plus temporary points back-projected from its depth);
 2. if that fails, match the local map by descriptor alone and solve PnP-RANSAC with depth;
 3. refine against the local map (covisible keyframes' landmarks) by projection;
-4. report LOST when too few landmark inliers remain, rather than inventing a pose.
+4. report LOST when too few landmark inliers remain, or when they fix the position too loosely (a few
+   far points left beside a person filling the view), rather than inventing a pose.
 Features whose dynamic probability reaches the threshold never take part; the others are weighted
 by (1 - p) in the pose optimisation.
 """
@@ -19,7 +20,7 @@ import cv2
 import numpy as np
 
 from frontend.matching import match_brute_force, search_by_projection
-from frontend.pose_optimizer import PoseObservations, optimize_pose
+from frontend.pose_optimizer import PoseObservations, PosePrior, optimize_pose
 from slam.core.camera import PinholeCamera
 from slam.core.config import TrackingConfig
 from slam.core.frame import FeatureFrame, MapPoints
@@ -57,6 +58,9 @@ class TrackingResult:
     # probabilities: evidence that the landmark sits on something moving.
     dynamic_landmarks: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     dynamic_probs: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # How far the inliers alone let the position slide along its weakest direction (1 sigma, metres);
+    # beyond tracking.max_pose_sigma_m the frame is LOST.
+    pose_sigma_t: float = float("inf")
 
 
 @dataclass
@@ -88,6 +92,10 @@ class Tracker:
         self._last_T_cw: Optional[np.ndarray] = None
         self._last_landmarks = np.zeros(0, np.int64)
         self._velocity: Optional[np.ndarray] = None
+        self._prior: Optional[PosePrior] = None   # this frame's motion-model prior (None: none)
+        self._pose_sigma_t = float("inf")         # of the last pose optimisation
+        sigmas = np.r_[np.full(3, np.deg2rad(cfg.motion_prior_sigma_deg)), np.full(3, cfg.motion_prior_sigma_m)]
+        self._prior_information = 1.0 / sigmas**2 if (sigmas > 0).all() else None
 
     def initialize(self, frame: FeatureFrame, T_cw: np.ndarray, landmark_of_keypoint: np.ndarray) -> None:
         """Start tracking from a frame that became the first keyframe."""
@@ -114,10 +122,13 @@ class Tracker:
     def track(self, frame: FeatureFrame, source: LocalMapSource) -> TrackingResult:
         eligible = frame.dynamic_prob < self.cfg.dynamic_threshold
         corr, T_cw, method = None, None, ""
+        self._prior = self._motion_prior()
         if self.state == TrackingState.OK:
             T_cw, corr = self._track_motion_model(frame, source, eligible)
             method = "motion"
         if corr is None:
+            # The prediction just failed to find the frame: it is no prior for the pose found without it.
+            self._prior = None
             T_cw, corr = self._track_by_descriptors(frame, source, eligible)
             method = "descriptors"
         if corr is None:
@@ -129,6 +140,7 @@ class Tracker:
         """Resume from a pose found outside the tracker (relocalization: PnP of ``keypoints`` against
         the landmarks ``points``): refine against the local map, or stay LOST if that fails."""
         eligible = frame.dynamic_prob < self.cfg.dynamic_threshold
+        self._prior = None   # no motion model across the gap
         ok = eligible[keypoints]
         corr = _Correspondences(keypoints[ok], points.ids[ok], points.xyz[ok])
         T_cw, corr = self._optimize(frame, T_cw, corr)
@@ -136,6 +148,12 @@ class Tracker:
             return self._lose(frame)
         self._last_T_cw, self._velocity = None, None   # no motion model across the gap
         return self._finish(frame, source, eligible, T_cw, corr, "relocalization")
+
+    def _motion_prior(self) -> Optional[PosePrior]:
+        """The constant-velocity prediction as a prior on the pose (once a velocity is known)."""
+        if self._prior_information is None or self.state != TrackingState.OK or self._velocity is None:
+            return None
+        return PosePrior(self.predicted_T_cw(), self._prior_information)
 
     def rebase(self, T_cw: np.ndarray) -> None:
         """The map moved under the last frame (a loop correction): continue from its corrected pose."""
@@ -146,7 +164,7 @@ class Tracker:
         T_cw, corr, visible, local = self._track_local_map(frame, source, eligible, T_cw, corr,
                                                            wide=(method != "motion"))
         landmark_inliers = int((corr.point_ids >= 0).sum())
-        if landmark_inliers < self.cfg.min_tracked_inliers:
+        if landmark_inliers < self.cfg.min_tracked_inliers or self._pose_sigma_t > self.cfg.max_pose_sigma_m:
             return self._lose(frame)
         lm_of_kp = np.full(len(frame), -1, np.int64)
         is_lm = corr.point_ids >= 0
@@ -155,7 +173,8 @@ class Tracker:
         self.state = TrackingState.OK
         self._remember(frame, T_cw, lm_of_kp)
         dyn_ids, dyn_probs = self._dynamic_evidence(frame, local, T_cw, eligible, corr.point_ids)
-        return TrackingResult(TrackingState.OK, T_cw, lm_of_kp, landmark_inliers, visible, method, dyn_ids, dyn_probs)
+        return TrackingResult(TrackingState.OK, T_cw, lm_of_kp, landmark_inliers, visible, method, dyn_ids, dyn_probs,
+                              self._pose_sigma_t)
 
     def _dynamic_evidence(self, frame, local: MapPoints, T_cw, eligible, used_ids):
         """Match local landmarks to the features kept out as dynamic (they never move the pose)."""
@@ -263,5 +282,6 @@ class Tracker:
         information = frame.inv_sigma2[kp] * (1.0 - frame.dynamic_prob[kp])
         obs = PoseObservations(corr.xyz, frame.uv[kp], frame.u_right[kp], information)
         result = optimize_pose(T_cw, obs, self.camera, self.cfg.pose_iterations, self.cfg.pose_rounds,
-                               self.cfg.chi2_mono, self.cfg.chi2_stereo)
+                               self.cfg.chi2_mono, self.cfg.chi2_stereo, self._prior)
+        self._pose_sigma_t = result.sigma_t
         return result.T_cw, corr.subset(result.inliers)

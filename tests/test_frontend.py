@@ -8,7 +8,7 @@ import pytest
 from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_keyframe
 from frontend.matching import hamming_pairs, match_brute_force, search_by_projection
 from frontend.orb_extractor import OrbExtractor, features_per_level
-from frontend.tracker import TrackingState
+from frontend.tracker import Tracker, TrackingState
 from slam.core.camera import PinholeCamera
 from slam.core.config import KeyframeConfig, load_config
 from slam.datasets import SyntheticSequence
@@ -397,6 +397,33 @@ def test_all_dynamic_frame_is_lost_not_given_a_pose(sequence, config):
     _, poses, tracked = system.trajectory()
     assert not tracked[lost_at] and tracked[np.arange(12) != lost_at].all()
     assert np.isnan(poses[lost_at]).all()
+
+
+def test_a_pose_the_inliers_barely_fix_is_lost_not_reported(sequence, config):
+    """tracking.max_pose_sigma_m: the points-only uncertainty of the pose decides, not only the inlier
+    count. A full view of the generated room fixes the position to millimetres; with the limit set below
+    that, every frame after the first is LOST and gets no pose."""
+    frames, _ = sequence
+    sigmas = []
+    tracker_track = Tracker.track
+
+    def track(self, frame, source):
+        result = tracker_track(self, frame, source)
+        sigmas.append(result.pose_sigma_t)
+        return result
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Tracker, "track", track)
+        system = System(config.model_copy(deep=True), dynamic_filter=DynamicAt(set()))
+        tracked = [system.process(f.rgb, f.depth, f.timestamp, index=f.index) for f in frames[:6]]
+    assert all(o.state == TrackingState.OK for o in tracked)
+    assert all(0.0001 < s < 0.005 for s in sigmas), sigmas
+    strict = config.model_copy(deep=True)
+    strict.tracking.max_pose_sigma_m = 0.00005
+    system = System(strict, dynamic_filter=DynamicAt(set()))
+    outputs = [system.process(f.rgb, f.depth, f.timestamp, index=f.index) for f in frames[:6]]
+    assert outputs[0].is_keyframe
+    assert all(o.state == TrackingState.LOST and o.T_wc is None for o in outputs[1:])
 
 
 def test_all_dynamic_first_frame_does_not_initialise(sequence, config):

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from slam.core.camera import PinholeCamera
 from slam.core.config import load_config
-from slam.core.geometry import (invert, make_pose, orthonormalize, pose_distance, rotation_angle_deg, se3_exp,
+from slam.core.geometry import (invert, make_pose, orthonormalize, pose_distance, rotation_angle_deg, se3_exp, se3_log,
                            skew, so3_exp, so3_log, transform_points)
 
 
@@ -121,6 +121,15 @@ def test_se3_exp_rotation_first_and_inverse():
         np.testing.assert_allclose(se3_exp(-xi) @ T, np.eye(4), atol=1e-12)
     # A pure translation twist is the translation itself.
     np.testing.assert_allclose(se3_exp(np.r_[0, 0, 0, 1.0, -2.0, 0.5]), make_pose(np.eye(3), [1.0, -2.0, 0.5]))
+
+
+def test_se3_log_inverts_se3_exp():
+    rng = np.random.default_rng(9)
+    twists = [np.r_[random_axes(rng, 1)[0] * a, rng.normal(size=3)] for a in (0.0, 1e-9, 1e-4, 0.5, 2.0, 3.0)]
+    for xi in twists + list(rng.normal(scale=0.8, size=(20, 6))):
+        if np.linalg.norm(xi[:3]) >= np.pi:   # the log returns the equivalent twist of angle < pi
+            continue
+        np.testing.assert_allclose(se3_log(se3_exp(xi)), xi, atol=1e-9)
 
 
 def test_invert_single_and_batched():

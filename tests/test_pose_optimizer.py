@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from frontend.pose_optimizer import PoseObservations, _residuals_and_jacobians, optimize_pose
+from frontend.pose_optimizer import PoseObservations, PosePrior, _residuals_and_jacobians, optimize_pose
 from slam.core.camera import PinholeCamera
 from slam.core.geometry import invert, se3_exp, so3_log, transform_points
 
@@ -179,3 +179,53 @@ def test_points_behind_the_camera_do_not_derail_the_solve(n_behind):
     assert t_err < 1e-4 and r_err < 1e-4
     assert not result.inliers[:n_behind].any()
     assert result.inliers[n_behind:].all()
+
+
+# The motion prior's sigmas of the default config (tracking.motion_prior_sigma_deg / _m).
+PRIOR_INFORMATION = 1.0 / np.r_[np.full(3, np.radians(0.5)), np.full(3, 0.01)] ** 2
+
+
+def far_wall_scene(seed: int, n: int = 60, noise: float = 1.0) -> Scene:
+    """What a person filling the view leaves: a few points on a wall 3.5 m away in one image corner,
+    observed with a pixel of noise; the forward translation is barely determined."""
+    rng = np.random.default_rng(seed)
+    T_cw = se3_exp(np.r_[rng.normal(scale=0.3, size=3), rng.normal(size=3)])
+    uv = np.c_[rng.uniform(10, 200, n), rng.uniform(10, 470, n)]
+    z = rng.uniform(3.4, 3.6, n)
+    points_w = transform_points(invert(T_cw), CAMERA.backproject(uv, z))
+    uv_obs = uv + rng.normal(scale=noise, size=uv.shape)
+    ur_obs = uv[:, 0] - CAMERA.bf / z + rng.normal(scale=noise, size=n)
+    return Scene(T_cw, T_cw.copy(), PoseObservations(points_w, uv_obs, ur_obs, np.ones(n)), np.zeros(n, bool),
+                 np.zeros(n, bool))
+
+
+def test_a_weakly_held_pose_reports_its_uncertainty_and_a_strong_one_not():
+    weak = optimize_pose(far_wall_scene(0).T_start, far_wall_scene(0).obs, CAMERA)
+    strong_scene = make_scene(0, noise=1.0)
+    strong = optimize_pose(strong_scene.T_start, strong_scene.obs, CAMERA)
+    # 1 px of disparity on a 3.5 m wall (bf = 40 px m): ~0.3 m of depth per point, 4 cm for 60 of them; the
+    # points' spread in the image tightens that to ~1.4 cm, still several times a full view's ~2 mm.
+    assert weak.sigma_t > 0.01
+    assert strong.sigma_t < 0.004
+    # The prior does not enter the reported uncertainty: it says what the points alone fix.
+    with_prior = optimize_pose(strong_scene.T_start, strong_scene.obs, CAMERA,
+                               prior=PosePrior(strong_scene.T_true, PRIOR_INFORMATION))
+    assert with_prior.sigma_t == pytest.approx(strong.sigma_t, rel=0.05)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_motion_prior_steadies_a_weak_pose_and_leaves_a_strong_one(seed):
+    # The prediction misses the true pose by what a frame's unmodelled motion gives (3 mm, 0.1 deg).
+    miss = se3_exp(np.r_[np.radians(0.1), 0, 0, 0.003, 0, 0])
+    weak_scene = far_wall_scene(seed)
+    prior = PosePrior(miss @ weak_scene.T_true, PRIOR_INFORMATION)
+    free = optimize_pose(weak_scene.T_start, weak_scene.obs, CAMERA)
+    held = optimize_pose(weak_scene.T_start, weak_scene.obs, CAMERA, prior=prior)
+    assert pose_error(weak_scene.T_true, held.T_cw)[0] < pose_error(weak_scene.T_true, free.T_cw)[0]
+    assert pose_error(weak_scene.T_true, held.T_cw)[0] < 0.012
+    # 200 points spread over the image: a prior 2 cm off moves the pose by well under a millimetre.
+    strong_scene = make_scene(seed, noise=0.5)
+    off = PosePrior(se3_exp(np.r_[0, 0, 0, 0.02, 0, 0]) @ strong_scene.T_true, PRIOR_INFORMATION)
+    a = optimize_pose(strong_scene.T_start, strong_scene.obs, CAMERA)
+    b = optimize_pose(strong_scene.T_start, strong_scene.obs, CAMERA, prior=off)
+    assert pose_error(a.T_cw, b.T_cw)[0] < 0.001

@@ -16,6 +16,7 @@ import numpy as np
 
 from frontend.dynamic import DynamicStats
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
+from frontend.dynamic.box_memory import BoxMemory
 from frontend.dynamic.fusion import fuse
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import DynamicConfig
@@ -46,6 +47,7 @@ class DynamicRejector:
         # extracted. One thread, one frame ahead at most, results used in frame order: deterministic.
         self._detect_thread: Optional[ThreadPoolExecutor] = None
         self._pending: Optional[tuple[float, Future]] = None
+        self._box_memory = BoxMemory(cfg.detector.hold_frames, set(cfg.classes.dynamic), camera.width, camera.height)
 
     def begin_frame(self, rgb: np.ndarray, timestamp: float) -> None:
         if self.detector is None:
@@ -64,6 +66,7 @@ class DynamicRejector:
                     ctx.detections = pending[1].result()
                 else:
                     ctx.detections = self.detector.detect(rgb, frame.timestamp)
+                ctx.detections = self._box_memory.update(ctx.detections)
         outputs: dict[str, MethodOutput] = {}
         for method in self.methods:
             with self.timer.measure(f"dynamic.{method.name}"):

@@ -31,6 +31,11 @@ class DetectorConfig(ConfigSection):
     score_threshold: float = Field(0.3, **_UNIT)
     nms_iou: float = Field(0.45, **_UNIT)
     threads: int = Field(1, ge=1)
+    hold_frames: int = Field(5, ge=0)
+    """A dynamic-class box the detector loses is held this many frames, moved on at its corners' last
+    velocity (frontend/dynamic/box_memory.py; 0 = off). Longer than the gaps a detector leaves on a
+    person blurring past or filling the view (Bonn crowd: 3 frames), short enough (0.17 s at 30 Hz)
+    that walking's accelerations (~1 m/s^2) move the person < 2 cm off the extrapolated box."""
     cache_dir: str = ""
     """Folder for per-sequence detection caches (empty = no cache)."""
 

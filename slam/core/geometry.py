@@ -47,6 +47,19 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     return T
 
 
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """Twist (omega, v) of a pose, the inverse of ``se3_exp``."""
+    omega = so3_log(T[:3, :3])
+    theta = np.linalg.norm(omega)
+    K = skew(omega)
+    if theta < 1e-10:
+        V = np.eye(3) + 0.5 * K
+    else:
+        V = (np.eye(3) + (1 - np.cos(theta)) / theta**2 * K
+             + (theta - np.sin(theta)) / theta**3 * (K @ K))
+    return np.r_[omega, np.linalg.solve(V, T[:3, 3])]
+
+
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, np.ravel(t)
