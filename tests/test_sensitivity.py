@@ -99,7 +99,7 @@ def test_table_cells_ratios_markers_and_bounds():
     assert cells[("default", "", "a")]["cell"] == "0.0100"
     assert cells[("dynamic.box_depth.weight", "+50 %", "a")]["cell"] == "at bound"
     table = sensitivity.markdown(records, grid, ["a", "b"]).splitlines()
-    assert table[0] == "| parameter | value | a | b | worst ratio |"
+    assert table[0] == "| parameter | value | a | b | worst ratio |"   # unknown labels stay as they are
     assert table[2] == "| **default** | — | 0.0100 | 0.0200 | — |"
     assert table[3] == "| `dynamic.box_prior` −50 % | 0.3 → 0.15 | 0.0300 (3.00×) ⚠ L3 | failed | 3.00× |"
     assert table[4] == "| `dynamic.box_prior` +50 % | 0.3 → 0.45 | 0.0050 (0.50×) | … | 0.50× |"
@@ -125,4 +125,6 @@ def test_a_small_real_sweep_writes_the_tables(tmp_path):
         ("dynamic.box_prior", "synthetic_people"), ("dynamic.box_prior", "hard_border")]
     assert all(c["ate_rmse_m"] > 0 and c["max_error_m"] >= c["ate_rmse_m"] for c in cells)
     assert cells[2]["ratio_to_default"] == pytest.approx(cells[2]["ate_rmse_m"] / cells[0]["ate_rmse_m"])
-    assert (tmp_path / "sensitivity.md").read_text().startswith("`python tools/sensitivity.py test`")
+    table = (tmp_path / "sensitivity.md").read_text()
+    assert table.startswith("`python tools/sensitivity.py test`")
+    assert "| parameter | value | synthetic people | border | worst ratio |" in table

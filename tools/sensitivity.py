@@ -38,6 +38,9 @@ SEQUENCES = (str(DATA / "rgbd_bonn_crowd_first480"), str(DATA / "rgbd_dataset_fr
              str(DATA / "rgbd_dataset_freiburg1_xyz_first37"), str(DATA / "rgbd_dataset_freiburg1_desk_9frames"),
              "synthetic:people", "hard:close_pass", "hard:three_close", "hard:stand_walk", "hard:border")
 QUICK_SEQUENCES = ("synthetic:people", str(DATA / "rgbd_dataset_freiburg1_xyz_first37"))
+COLUMN_NAMES = {"rgbd_bonn_crowd_first480": "Bonn crowd", "rgbd_dataset_freiburg1_rpy_first400": "fr1/rpy",
+                "rgbd_dataset_freiburg1_xyz_first37": "fr1/xyz", "rgbd_dataset_freiburg1_desk_9frames": "fr1/desk",
+                "synthetic_people": "synthetic people"}   # the table's headers; others keep their run label
 
 
 @dataclass(frozen=True)
@@ -218,7 +221,8 @@ def sensitivity_rows(rows: list[dict], grid: list[Variation], sequences: list[st
 
 def markdown(records: list[dict], grid: list[Variation], sequences: list[str]) -> str:
     """The table (a row per default / variation, a column per sequence) and the parameters' reasons."""
-    header = ["parameter", "value", *sequences, "worst ratio"]
+    header = ["parameter", "value", *[COLUMN_NAMES.get(s, s.removeprefix("hard_")) for s in sequences],
+              "worst ratio"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     by_row: dict[tuple[str, str], list[dict]] = {}
     for record in records:
@@ -275,6 +279,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--timeout", type=float, help="seconds after which a run is killed and recorded as failed")
     parser.add_argument("--resume", action="store_true", help="keep the finished runs of an identical earlier sweep")
     parser.add_argument("--quiet", "-q", action="store_true", help="no per-run progress lines")
+    parser.add_argument("--tables-only", action="store_true",
+                        help="rewrite sensitivity.* from the runs already in --output (sweep.json), run nothing")
     args = parser.parse_args(argv)
     grid = variations()
     sequences = QUICK_SEQUENCES if args.quick else SEQUENCES
@@ -282,6 +288,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     spec = sweep_spec(grid, sequences, args.repeats, QUICK_FRAMES if args.quick else None, cache)
     labels = [sweep.sequence_label(s) for s in sequences]
     command = "python tools/sensitivity.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    if args.tables_only:   # e.g. after a sweep cut short: the table of the runs that finished
+        previous = json.loads((args.output / "sensitivity.json").read_text())["command"]
+        write_outputs(args.output, json.loads((args.output / "sweep.json").read_text())["runs"], grid, labels,
+                      previous)
+        print((args.output / "sensitivity.md").read_text(), end="")
+        return 0
     try:
         rows = sweep.run_sweep(spec, args.output, args.jobs, args.timeout, args.quiet, args.resume,
                                configs_first=True,
