@@ -93,7 +93,7 @@ def test_table_cells_ratios_markers_and_bounds():
     cells = {(r["parameter"], r["direction"], r["sequence"]): r for r in records}
     minus = cells[("dynamic.box_prior", "−50 %", "a")]
     assert minus["ate_rmse_m"] == pytest.approx(0.03) and minus["ratio_to_default"] == pytest.approx(3.0)
-    assert minus["cell"] == "0.0300 (3.00×) ⚠ L3"   # median of the repeats, worst frame, most frames lost
+    assert minus["cell"] == "0.0300 (3.00×) ⚠7 cm L3"   # median of the repeats, worst frame, most frames lost
     assert cells[("dynamic.box_prior", "−50 %", "b")]["cell"] == "failed"
     assert cells[("dynamic.box_prior", "+50 %", "b")]["cell"] == "…"   # not run yet
     assert cells[("default", "", "a")]["cell"] == "0.0100"
@@ -101,7 +101,7 @@ def test_table_cells_ratios_markers_and_bounds():
     table = sensitivity.markdown(records, grid, ["a", "b"]).splitlines()
     assert table[0] == "| parameter | value | a | b | worst ratio |"   # unknown labels stay as they are
     assert table[2] == "| **default** | — | 0.0100 | 0.0200 | — |"
-    assert table[3] == "| `dynamic.box_prior` −50 % | 0.3 → 0.15 | 0.0300 (3.00×) ⚠ L3 | failed | 3.00× |"
+    assert table[3] == "| `dynamic.box_prior` −50 % | 0.3 → 0.15 | 0.0300 (3.00×) ⚠7 cm L3 | failed | 3.00× |"
     assert table[4] == "| `dynamic.box_prior` +50 % | 0.3 → 0.45 | 0.0050 (0.50×) | … | 0.50× |"
     assert table[6] == "| `dynamic.box_depth.weight` +50 % | 1 → 1 (clamped) | at bound | at bound | — |"
     assert "- `dynamic.box_prior`: reason one" in table and "- `dynamic.box_depth.weight`: reason two" in table

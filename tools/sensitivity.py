@@ -173,7 +173,8 @@ def cell_stats(rows: list[dict], sequence: str, config: str) -> Optional[dict]:
 
 
 def format_cell(stats: Optional[dict], default_ate: Optional[float]) -> str:
-    """``0.0128 (1.05×)``, ``⚠`` when a tracked frame is > 5 cm off, ``L<n>`` when n frames were lost."""
+    """``0.0128 (1.05×)``, ``⚠7 cm`` when the worst tracked frame is > 5 cm off, ``L<n>`` when n frames were
+    lost."""
     if stats is None:
         return "…"   # not run yet
     if stats["ate"] is None:
@@ -182,7 +183,7 @@ def format_cell(stats: Optional[dict], default_ate: Optional[float]) -> str:
     if default_ate:
         text += f" ({stats['ate'] / default_ate:.2f}×)"
     if stats.get("max_error") is not None and stats["max_error"] > MAX_FRAME_ERROR_M:
-        text += " ⚠"
+        text += f" ⚠{stats['max_error'] * 100:.0f} cm"
     if stats.get("lost"):
         text += f" L{stats['lost']}"
     if stats.get("failed"):
@@ -239,8 +240,8 @@ def markdown(records: list[dict], grid: list[Variation], sequences: list[str]) -
         lines.append("| " + " | ".join([name, value, *[c["cell"] for c in cells], worst]) + " |")
     reasons = dict.fromkeys(f"- `{v.key}`: {v.reason}" for v in grid)
     legend = ("\nCells: ATE RMSE (m, median over repeats) and its ratio to the default run on that sequence "
-              f"(> 1 = worse); ⚠ a tracked frame more than {MAX_FRAME_ERROR_M * 100:.0f} cm off; L<n> n frames "
-              "lost; at bound: the schema range clamps the value back to the default (not run); … not run yet. "
+              f"(> 1 = worse); ⚠ the worst tracked frame's error where it is more than "
+              f"{MAX_FRAME_ERROR_M * 100:.0f} cm; L<n> n frames lost; at bound: the schema range clamps the value back to the default (not run); … not run yet. "
               "Worst ratio: the largest ratio over the sequences.\n\n")
     return "\n".join(lines) + "\n" + legend + "\n".join(reasons) + "\n"
 
