@@ -241,8 +241,8 @@ def markdown(records: list[dict], grid: list[Variation], sequences: list[str]) -
     reasons = dict.fromkeys(f"- `{v.key}`: {v.reason}" for v in grid)
     legend = ("\nCells: ATE RMSE (m, median over repeats) and its ratio to the default run on that sequence "
               f"(> 1 = worse); ⚠ the worst tracked frame's error where it is more than "
-              f"{MAX_FRAME_ERROR_M * 100:.0f} cm; L<n> n frames lost; at bound: the schema range clamps the value back to the default (not run); … not run yet. "
-              "Worst ratio: the largest ratio over the sequences.\n\n")
+              f"{MAX_FRAME_ERROR_M * 100:.0f} cm; L<n> n frames lost; at bound: the schema range clamps the value "
+              "back to the default (not run); … not run yet. Worst ratio: the largest ratio over the sequences.\n\n")
     return "\n".join(lines) + "\n" + legend + "\n".join(reasons) + "\n"
 
 
