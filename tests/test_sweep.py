@@ -250,3 +250,53 @@ def test_resume_keeps_finished_runs_and_reruns_the_failed_ones(tiny_sweep):
     assert [r["ate_rmse_m"] for r in after] == [r["ate_rmse_m"] for r in before]
     assert [r["status"] for r in after] == [r["status"] for r in before]
     assert not failed_marker.exists()  # failed runs are run again
+
+
+def test_hard_scene_sequences_parse_label_and_are_checked(tmp_path):
+    sequences = load_tool("sweep_sequences")
+    assert sequences.hard_scene_options("hard:close_pass") == {"scene": "close_pass", "seed": 0}
+    assert sequences.hard_scene_options("hard:border:seed=3") == {"scene": "border", "seed": 3}
+    for bad in ("hard:nope", "hard:", "hard:border:frames=3"):
+        with pytest.raises(sequences.SequenceSpecError):
+            sequences.hard_scene_options(bad)
+    assert sweep.sequence_label("hard:stand_walk:seed=2") == "hard_stand_walk_seed=2"
+    args = sweep.build_parser().parse_args(["--sequences", "hard:three_close", "--configs", "none"])
+    spec = sweep.spec_from_args(args)
+    assert spec.sequences == ["hard:three_close"]   # a spec, not a folder to resolve
+    sweep.check_spec(spec)
+    assert sweep.make_jobs(spec, tmp_path)[0]["run_dir"] == str(tmp_path / "runs" / "hard_three_close__none__r0")
+    assert sweep.main(["--sequences", "hard:no_such_scene", "--configs", "none"]) == 2
+
+
+def test_configs_first_orders_the_runs_configuration_by_configuration(tmp_path):
+    spec = sweep.SweepSpec(sequences=["synthetic:a", "synthetic:b"], configs=[sweep.ConfigSpec("x"),
+                                                                               sweep.ConfigSpec("y")])
+    order = [(j["config"], j["sequence"]) for j in sweep.make_jobs(spec, tmp_path, configs_first=True)]
+    assert order == [("x", "synthetic:a"), ("x", "synthetic:b"), ("y", "synthetic:a"), ("y", "synthetic:b")]
+    assert [j["sequence"] for j in sweep.make_jobs(spec, tmp_path)][:2] == ["synthetic:a", "synthetic:a"]
+
+
+def test_rows_carry_the_worst_frame_error(tmp_path):
+    (tmp_path / "summary.json").write_text(json.dumps({"tracked": 9, "frames": 10, "timing_ms": {}}))
+    ate = {"rmse": 0.02, "max": 0.06}
+    rpe = {"translation": {"rmse": 0.01}, "rotation": {"rmse": 0.3}}
+    (tmp_path / "evaluation.json").write_text(json.dumps({"ate": ate, "rpe_frame": rpe}))
+    job = {"sequence_label": "s", "config": "c", "repeat": 0, "seed": 0, "run_dir": str(tmp_path)}
+    row = sweep.collect_row(job, 0, 1.0)
+    assert (row["status"], row["ate_rmse_m"], row["max_error_m"], row["tracked"]) == ("ok", 0.02, 0.06, 9)
+    assert tables.csv_text([row]).splitlines()[0].split(",")[6:8] == ["ate_rmse_m", "max_error_m"]
+
+
+@pytest.mark.slow
+def test_a_hard_scene_runs_with_its_detector_misses(tmp_path):
+    """20 frames of border (the person cut by the image border; its detector misses frames 2-9 of 20): the
+    run finishes and its row has a worst-frame error no smaller than the RMSE."""
+    argv = ["--sequences", "hard:border", "--configs", "dynamic_all", "--max-frames", "20", "--jobs", "1",
+            "--output", str(tmp_path), "--quiet"]
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert sweep.main(argv) == 0
+    (row,) = read_csv(tmp_path / "sweep.csv")
+    assert row["sequence"] == "hard_border" and row["frames"] == "20"
+    assert float(row["max_error_m"]) >= float(row["ate_rmse_m"]) > 0
+    job = json.loads((Path(row["run_dir"]) / "job.json").read_text())
+    assert job["sequence"] == "hard:border"

@@ -6,7 +6,8 @@
     python tools/sweep.py --sequences synthetic:people --configs none dynamic_box_depth --max-frames 60
 
 A sweep file (YAML; ``tools/sweeps/bonn_ablation.yaml`` documents the keys) lists sequences (folders,
-or ``synthetic[:MOVERS][:seed=N][:path=P]`` generated with ground-truth boxes as the detector),
+or ``synthetic[:MOVERS][:seed=N][:path=P]`` generated with ground-truth boxes as the detector, or
+``hard:SCENE[:seed=N]``, a scripted hard scene with its detector's misses; tools/sweep_sequences.py),
 presets for every run, labelled configurations, the baseline of the "vs." column, repeats (repeat k
 uses seed k) and max_frames; command-line options override it. Each run is this script with
 ``--run-one`` in its own process (a crash or a ``--timeout`` fails only that run) writing
@@ -19,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -28,16 +28,14 @@ import traceback
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import yaml
 
+from sweep_sequences import build_pipeline, check_generated, is_generated, sequence_label
 from sweep_tables import csv_text, markdown_table
 
 REPO = Path(__file__).resolve().parents[1]
-SYNTHETIC_PREFIX = "synthetic"
-SYNTHETIC_FRAMES = 120          # frames of a generated sequence when --max-frames is not given
-ORACLE_MARGIN_PX = 8            # ground-truth boxes widened as a detector's boxes are
 NONE_CONFIGS = ("none", "off")  # --configs names that mean "dynamic handling off, no preset"
 
 
@@ -68,7 +66,7 @@ class SweepSpec:
 
 def _resolve_path(text: str) -> str:
     """Sweep-file paths are relative to the repository root; preset names and synthetic specs stay as they are."""
-    if text.startswith(SYNTHETIC_PREFIX) or ("/" not in text and not text.endswith((".yaml", ".yml"))):
+    if is_generated(text) or ("/" not in text and not text.endswith((".yaml", ".yml"))):
         return text
     path = Path(text).expanduser()
     return str(path if path.is_absolute() else (REPO / path).resolve())
@@ -117,17 +115,16 @@ def load_sweep_file(path: Path) -> SweepSpec:
         detection_cache=str(REPO / Path(data["detection_cache"]).expanduser()) if data.get("detection_cache") else None)
 
 
-def sequence_label(sequence: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.=-]+", "_", sequence) if sequence.startswith(SYNTHETIC_PREFIX) else Path(sequence).name
-
-
 def check_spec(spec: SweepSpec) -> None:
     """Refuse a sweep that cannot run; the baseline defaults to the first configuration."""
     if not spec.sequences or not spec.configs:
         raise SweepError("nothing to run: give a sweep file, or --sequences and --configs")
-    missing = [s for s in spec.sequences if not s.startswith(SYNTHETIC_PREFIX) and not Path(s).is_dir()]
+    missing = [s for s in spec.sequences if not is_generated(s) and not Path(s).is_dir()]
     if missing:
         raise SweepError(f"sequence folder not found: {', '.join(missing)}")
+    bad_specs = [reason for reason in map(check_generated, filter(is_generated, spec.sequences)) if reason]
+    if bad_specs:
+        raise SweepError("; ".join(bad_specs))
     labels = [c.label for c in spec.configs]
     if len(set(labels)) != len(labels):
         raise SweepError(f"configuration labels must be distinct, got {labels}")
@@ -139,64 +136,6 @@ def check_spec(spec: SweepSpec) -> None:
 
 
 # ------------------------------------------------------------------------------------ one run (child)
-def open_synthetic(spec: str, n_frames: int):
-    """``synthetic[:MOVERS][:seed=N][:path=P]``, e.g. ``synthetic:people`` or ``synthetic:crowd:seed=2``."""
-    from slam.datasets import SyntheticSequence
-
-    options: dict[str, Any] = {"movers": "none"}
-    for token in spec.split(":")[1:]:
-        key, _, value = token.partition("=")
-        if not value:
-            options["movers"] = key
-        elif key in ("seed", "path"):
-            options[key] = int(value) if key == "seed" else value
-        else:
-            raise SweepError(f"{spec}: unknown option {key!r} (expected MOVERS, seed=N or path=P)")
-    return SyntheticSequence(n_frames=n_frames, **options)
-
-
-def build_pipeline(job: dict):
-    """The Pipeline of one job, configured as ``dynslam run`` would be plus the job's seed."""
-    from slam.cli import resolve_run_config
-    from slam.datasets import TumDataset
-    from slam.run.pipeline import Pipeline
-
-    files = list(job["presets"])
-    overrides = dict(job["overrides"])
-    if job["sequence"].startswith(SYNTHETIC_PREFIX):
-        sequence = open_synthetic(job["sequence"], job["max_frames"] or SYNTHETIC_FRAMES)
-        fx, fy, cx, cy = sequence.intrinsics
-        camera = {"camera.name": "synthetic", "camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
-                  "camera.width": sequence.width, "camera.height": sequence.height, "camera.distortion": [0.0] * 5}
-        config = seeded(resolve_run_config(None, files, {**camera, **overrides}), job["seed"])
-        return oracle_pipeline(sequence, config, job["run_dir"], job["max_frames"])
-    root = Path(job["sequence"])
-    config = seeded(resolve_run_config(root, files, overrides), job["seed"])
-    dataset = TumDataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
-    return Pipeline(dataset, config, job["run_dir"], job["max_frames"])
-
-
-def seeded(config, seed: int):
-    """Repeats differ only in their seeds: RANSAC's and every dynamic method's random choices."""
-    from slam.core.dynamic_config import METHOD_NAMES
-
-    config.seed = seed
-    for method in METHOD_NAMES:
-        if hasattr(getattr(config.dynamic, method), "seed"):
-            getattr(config.dynamic, method).seed = seed
-    return config
-
-
-def oracle_pipeline(sequence, config, run_dir: str, max_frames: Optional[int]):
-    """A Pipeline whose System sees the generated movers' true boxes (YOLOX does not detect the
-    synthetic people)."""
-    from frontend.dynamic.oracle import synthetic_oracle
-    from slam.run.pipeline import Pipeline
-
-    return Pipeline(sequence, config, run_dir, max_frames,
-                    detector=synthetic_oracle(sequence, margin_px=ORACLE_MARGIN_PX))
-
-
 def run_one(job: dict) -> int:
     """Child process: one run; on failure ``error.txt`` in the run folder says why (exit status 1)."""
     from slam.core.atomic_io import write_text_atomic
@@ -211,7 +150,9 @@ def run_one(job: dict) -> int:
 
 
 # ------------------------------------------------------------------------------------ runs (parent)
-def make_jobs(spec: SweepSpec, output: Path) -> list[dict]:
+def make_jobs(spec: SweepSpec, output: Path, configs_first: bool = False) -> list[dict]:
+    """Every run, sequence by sequence; with ``configs_first`` configuration by configuration (a sweep cut
+    short then holds whole configurations across all sequences)."""
     jobs = []
     cache = {"dynamic.detector.cache_dir": spec.detection_cache} if spec.detection_cache else {}
     for sequence in spec.sequences:
@@ -222,6 +163,9 @@ def make_jobs(spec: SweepSpec, output: Path) -> list[dict]:
                              "repeat": repeat, "seed": repeat, "presets": spec.presets + list(config.presets),
                              "overrides": {**cache, **spec.overrides, **dict(config.overrides)},
                              "max_frames": spec.max_frames, "run_dir": str(output / "runs" / name)})
+    if configs_first:
+        labels = [c.label for c in spec.configs]
+        jobs.sort(key=lambda job: (labels.index(job["config"]), job["repeat"]))  # stable: sequences keep order
     return jobs
 
 
@@ -286,18 +230,21 @@ def run_numbers(run_dir: Path) -> dict[str, Any]:
     evaluation_file = run_dir / "evaluation.json"
     if evaluation_file.exists():
         evaluation = json.loads(evaluation_file.read_text())
-        numbers.update(ate_rmse_m=evaluation["ate"]["rmse"],
+        # max_error_m: the worst tracked frame's position error (the issue's bar: none more than 5 cm off).
+        numbers.update(ate_rmse_m=evaluation["ate"]["rmse"], max_error_m=evaluation["ate"]["max"],
                        rpe_trans_m=evaluation["rpe_frame"]["translation"]["rmse"],
                        rpe_rot_deg=evaluation["rpe_frame"]["rotation"]["rmse"])
     return numbers
 
 
 def run_sweep(spec: SweepSpec, output: Path, jobs: int, timeout: Optional[float] = None, quiet: bool = False,
-              resume: bool = False) -> list[dict]:
-    """All runs, ``jobs`` at a time; the tables are rewritten after each finished run."""
+              resume: bool = False, configs_first: bool = False,
+              on_rows: Optional[Callable[[list[dict]], None]] = None) -> list[dict]:
+    """All runs, ``jobs`` at a time; the tables are rewritten (and ``on_rows`` called with the rows so
+    far) after each finished run."""
     check_spec(spec)
     output.mkdir(parents=True, exist_ok=True)
-    todo = make_jobs(spec, output)
+    todo = make_jobs(spec, output, configs_first)
     order = {(j["sequence_label"], j["config"], j["repeat"]): i for i, j in enumerate(todo)}
     rows: list[dict] = []
     pool = ThreadPoolExecutor(max_workers=max(1, jobs))  # threads only wait on the child processes
@@ -311,6 +258,8 @@ def run_sweep(spec: SweepSpec, output: Path, jobs: int, timeout: Optional[float]
             rows.append(row)
             rows.sort(key=lambda r: order[(r["sequence"], r["config"], r["repeat"])])
             write_tables(rows, spec, output)
+            if on_rows is not None:
+                on_rows(rows)
             if not quiet:
                 print(f"sweep: [{len(rows)}/{len(todo)}] {describe_run(row)}", file=sys.stderr, flush=True)
     finally:  # on Ctrl-C, start nothing new (the running children get the signal themselves)
@@ -339,7 +288,8 @@ def write_tables(rows: list[dict], spec: SweepSpec, output: Path) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sweep_file", nargs="?", type=Path, help="YAML sweep definition (see above)")
-    parser.add_argument("--sequences", nargs="+", help="folders or synthetic[:MOVERS] (replace the file's)")
+    parser.add_argument("--sequences", nargs="+",
+                        help="folders, synthetic[:MOVERS] or hard:SCENE (replace the file's)")
     parser.add_argument("--configs", nargs="+", help="preset names or YAML files, 'none' = off (replace the file's)")
     parser.add_argument("--preset", action="append", help="preset applied to every run first (replaces the file's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override for every run")
@@ -362,7 +312,7 @@ def spec_from_args(args) -> SweepSpec:
 
     spec = load_sweep_file(args.sweep_file) if args.sweep_file else SweepSpec(sequences=[], configs=[])
     if args.sequences:
-        spec.sequences = [s if s.startswith(SYNTHETIC_PREFIX) else str(Path(s).resolve()) for s in args.sequences]
+        spec.sequences = [s if is_generated(s) else str(Path(s).resolve()) for s in args.sequences]
     if args.configs:
         spec.configs = [config_from_name(c) for c in args.configs]
         spec.baseline = spec.baseline if spec.baseline in [c.label for c in spec.configs] else None

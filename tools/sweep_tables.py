@@ -13,7 +13,7 @@ from typing import Optional
 
 import numpy as np
 
-RUN_COLUMNS = ["sequence", "config", "repeat", "seed", "status", "error", "ate_rmse_m", "rpe_trans_m",
+RUN_COLUMNS = ["sequence", "config", "repeat", "seed", "status", "error", "ate_rmse_m", "max_error_m", "rpe_trans_m",
                "rpe_rot_deg", "tracked", "frames", "keyframes", "median_ms", "mean_ms", "wall_s", "run_dir"]
 
 
