@@ -104,22 +104,21 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
             T = se3_exp(step) @ T
             if np.linalg.norm(step) < 1e-7:
                 break
-        e, _, _, depth = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
+        e, J, _, depth = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
         chi2 = obs.information * np.einsum("ij,ij->i", e, e)
         active = (chi2 <= threshold) & (depth > 1e-3)
         if active.sum() < 10:
             break
-    return PoseResult(orthonormalize(T), active, chi2, _translation_sigma(T, obs, active, fx, fy, cx, cy, bf))
+    return PoseResult(orthonormalize(T), active, chi2, _translation_sigma(J, obs.information, active))
 
 
-def _translation_sigma(T, obs: PoseObservations, inliers: np.ndarray, fx, fy, cx, cy, bf) -> float:
+def _translation_sigma(J: np.ndarray, information: np.ndarray, inliers: np.ndarray) -> float:
     """sqrt of the largest eigenvalue of the translation block of the points-only covariance (H^-1): how
     far along its weakest direction the inliers let the camera slide (the prior left out: it says how
     well the map alone places the frame)."""
     if inliers.sum() < 3:
         return float("inf")
-    _, J, _, _ = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
-    Jw = (J * (obs.information * inliers)[:, None, None]).reshape(-1, 6)
+    Jw = (J * (information * inliers)[:, None, None]).reshape(-1, 6)
     H = Jw.T @ J.reshape(-1, 6)
     try:
         covariance = np.linalg.inv(H)

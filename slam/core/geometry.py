@@ -30,34 +30,28 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
 
 
+def _so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
+    """V in t = V v: how a twist's translation part becomes the pose's translation."""
+    theta = np.linalg.norm(omega)
+    K = skew(omega)
+    if theta < 1e-10:
+        return np.eye(3) + 0.5 * K
+    return np.eye(3) + (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * (K @ K)
+
+
 def se3_exp(xi: np.ndarray) -> np.ndarray:
     """Pose from a twist (omega, v): rotation part first, as in GTSAM's Pose3.Expmap."""
     xi = np.asarray(xi, dtype=float)
     omega, v = xi[:3], xi[3:]
-    theta = np.linalg.norm(omega)
-    K = skew(omega)
-    R = so3_exp(omega)
-    if theta < 1e-10:
-        V = np.eye(3) + 0.5 * K
-    else:
-        V = (np.eye(3) + (1 - np.cos(theta)) / theta**2 * K
-             + (theta - np.sin(theta)) / theta**3 * (K @ K))
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, V @ v
+    T[:3, :3], T[:3, 3] = so3_exp(omega), _so3_left_jacobian(omega) @ v
     return T
 
 
 def se3_log(T: np.ndarray) -> np.ndarray:
     """Twist (omega, v) of a pose, the inverse of ``se3_exp``."""
     omega = so3_log(T[:3, :3])
-    theta = np.linalg.norm(omega)
-    K = skew(omega)
-    if theta < 1e-10:
-        V = np.eye(3) + 0.5 * K
-    else:
-        V = (np.eye(3) + (1 - np.cos(theta)) / theta**2 * K
-             + (theta - np.sin(theta)) / theta**3 * (K @ K))
-    return np.r_[omega, np.linalg.solve(V, T[:3, 3])]
+    return np.r_[omega, np.linalg.solve(_so3_left_jacobian(omega), T[:3, 3])]
 
 
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
