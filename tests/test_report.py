@@ -180,12 +180,22 @@ def fake_frame(n: int = 10) -> SimpleNamespace:
 def kept_positions(recorder: DynamicStripRecorder, frames: int) -> list[int]:
     image = np.full((60, 80, 3), 128, np.uint8)
     for position in range(frames):
-        recorder.observe(position, image, fake_frame(), np.zeros((60, 80)))
+        recorder.observe(position, image, fake_frame(), lambda: np.zeros((60, 80)))
     return [p for p, _ in recorder._kept]
 
 
 def test_strip_frames_known_length_are_evenly_spaced_first_to_last():
     assert kept_positions(DynamicStripRecorder(0.5, expected_frames=101, width=40), 101) == [0, 20, 40, 60, 80, 100]
+
+
+def test_strip_asks_for_the_mask_only_on_the_frames_it_keeps():
+    """Fusing a frame's pixel mask costs ~10 ms: a 1000-frame run must not pay it 1000 times for 6 thumbnails."""
+    asked = []
+    recorder = DynamicStripRecorder(0.5, expected_frames=1000, width=40)
+    image = np.full((60, 80, 3), 128, np.uint8)
+    for position in range(1000):
+        recorder.observe(position, image, fake_frame(), lambda p=position: asked.append(p) or np.zeros((60, 80)))
+    assert asked == [p for p, _ in recorder._kept] and len(asked) == 6
 
 
 @pytest.mark.parametrize("frames", [3, 6, 7, 50, 1000])

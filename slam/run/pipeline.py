@@ -221,7 +221,7 @@ class Pipeline:
             self._record(out, online)
             self.artifacts.on_frame(out, frame, self.system)
             self.dynamic_strip.observe(self.summary.frames - 1, frame.rgb, self.system.last_frame,
-                                       self.system.last_dynamic_mask)
+                                       lambda: self.system.last_dynamic_mask)
             for observer in self.observers:
                 observer.on_frame(frame, out, self.system)
             if self.progress is not None:

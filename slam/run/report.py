@@ -68,15 +68,17 @@ class DynamicStripRecorder:
             self._kept = [(p, t) for p, t in self._kept if p % self._step == 0]
         return position % self._step == 0
 
-    def observe(self, position: int, bgr: np.ndarray, frame: Any, mask: Optional[np.ndarray]) -> None:
-        """Offer the ``position``-th processed frame (image, its FeatureFrame, dynamic mask)."""
+    def observe(self, position: int, bgr: np.ndarray, frame: Any,
+                mask: Callable[[], Optional[np.ndarray]]) -> None:
+        """Offer the ``position``-th processed frame (image, its FeatureFrame, a callable giving its dynamic
+        mask). The mask is asked for only for a kept frame: fusing it costs ~10 ms, ~6 frames are kept."""
         if frame is None or not self._wanted(position):
             return
         from slam.run.report_plots import draw_dynamic_thumbnail
 
         n_dynamic = int(np.count_nonzero(frame.dynamic_prob >= self.threshold))
         label = f"frame {position}: {n_dynamic}/{len(frame.dynamic_prob)} dynamic"
-        thumb = draw_dynamic_thumbnail(bgr, frame.uv_raw, frame.dynamic_prob, mask, self.threshold,
+        thumb = draw_dynamic_thumbnail(bgr, frame.uv_raw, frame.dynamic_prob, mask(), self.threshold,
                                        self.width, label)
         self._kept.append((position, thumb))
 
@@ -92,7 +94,8 @@ class NullStripRecorder:
     def thumbnails(self) -> list[np.ndarray]:
         return []
 
-    def observe(self, position: int, bgr: np.ndarray, frame: Any, mask: Optional[np.ndarray]) -> None:
+    def observe(self, position: int, bgr: np.ndarray, frame: Any,
+                mask: Callable[[], Optional[np.ndarray]]) -> None:
         return None
 
 
