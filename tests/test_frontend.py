@@ -365,7 +365,7 @@ class DynamicAt:
     def __init__(self, indices):
         self.indices = set(indices)
 
-    def begin_frame(self, rgb, timestamp) -> None:
+    def begin_frame(self, rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw) -> None:
         pass
 
     def process(self, frame: FeatureFrame, rgb, gray, depth, predicted_T_cw, last_T_cw) -> np.ndarray:

@@ -32,9 +32,11 @@ class DynamicFilter(Protocol):
     name: str
     stats: Optional[DynamicStats]   # per-frame flag counts (None for the null filter)
 
-    def begin_frame(self, rgb: np.ndarray, timestamp: float) -> None:
-        """A new frame arrived: start what needs only the image (the detector, on a thread) so it runs
-        while the features are extracted. Optional: ``process`` does it itself when this was not called."""
+    def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
+                    predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> None:
+        """A new frame arrived: start what needs only the images and poses (the detector, the methods'
+        ``prepare``; on threads) so it runs while the features are extracted. Optional: ``process`` does
+        it itself when this was not called for its frame."""
         ...
 
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
@@ -63,7 +65,7 @@ class StaticWorld:
     stats = None
     last_mask = None
 
-    def begin_frame(self, rgb, timestamp) -> None:
+    def begin_frame(self, rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw) -> None:
         return None
 
     def process(self, frame, rgb, gray, depth, predicted_T_cw, last_T_cw) -> np.ndarray:

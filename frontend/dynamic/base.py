@@ -49,7 +49,7 @@ class Detector(Protocol):
 
 @dataclass
 class DynamicContext:
-    frame: FeatureFrame                 # keypoints: uv_raw index the images, uv are undistorted
+    frame: Optional[FeatureFrame]       # keypoints: uv_raw index the images, uv are undistorted (None in prepare)
     rgb: np.ndarray                     # HxWx3 uint8 BGR
     gray: np.ndarray                    # HxW uint8
     depth: np.ndarray                   # HxW float32 metres, 0 = invalid
@@ -77,6 +77,12 @@ class MethodOutput:
 class DynamicMethod(Protocol):
     name: str
     needs_detector: bool
+
+    def prepare(self, ctx: DynamicContext) -> None:
+        """The part of the frame's work that needs only the images and the poses (``ctx.frame`` and
+        ``ctx.detections`` are None): the rejector runs it on a thread while the features are extracted,
+        then calls ``process`` with the same context, completed. ``process`` must also work unprepared."""
+        ...
 
     def process(self, ctx: DynamicContext) -> MethodOutput: ...
 

@@ -185,6 +185,9 @@ class BoxDepthMethod:
 
     # -- per frame ---------------------------------------------------------------------------------
 
+    def prepare(self, ctx: DynamicContext) -> None:
+        """Nothing to do before the features and detections exist (see ``DynamicMethod.prepare``)."""
+
     def process(self, ctx: DynamicContext) -> MethodOutput:
         frame = ctx.frame
         n = len(frame)

@@ -235,12 +235,15 @@ class CprMethod:
         self._masks: deque[tuple[np.ndarray, float]] = deque(maxlen=max(1, self.cfg.refine_window))
         self._grid_key = None
         self._pending: Optional[dict] = None
+        self._prepared: Optional[tuple] = None     # (ctx, prob map or None = abstain, info, stage ms)
         self.timings: dict[str, float] = {}
 
     # -- public --
-    def process(self, ctx: DynamicContext) -> MethodOutput:
+    def prepare(self, ctx: DynamicContext) -> None:
+        """Everything but the keypoint lookup: the cloud, the sub-poses, the scores and the mask need only
+        the depth, the grey image and the predicted pose, so the rejector runs this on a thread while the
+        features are extracted (``ctx.frame`` may still be None). ``process`` finishes the frame."""
         self._flush_pending()
-        n = len(ctx.frame)
         times: dict[str, float] = {}
         t0 = time.perf_counter()
         cloud = self._cloud(ctx)
@@ -249,8 +252,8 @@ class CprMethod:
         self._pending = pending
         ref = self._reference(self.cfg.sigma_frame)
         if ref is None or len(cloud) < self.cfg.clusters * _MIN_CLUSTER_POINTS or len(ref.cloud) < 10:
-            self.timings = times
-            return MethodOutput(np.full(n, np.nan), None, {"abstain": 1, **{f"ms_{k}": v for k, v in times.items()}})
+            self._prepared = (ctx, None, {"abstain": 1}, times)
+            return
         raw, info = self._raw_mask(cloud, ref, ctx.predicted_T_cw, times)
         pending["raw"] = raw
         t0 = time.perf_counter()
@@ -261,9 +264,20 @@ class CprMethod:
             pending["refined"] = refined
             prob_map = soft_probability(refined, fraction, self.cfg.tau)
         times["refine"] = (time.perf_counter() - t0) * 1e3
-        prob = keypoints_in_mask(prob_map, ctx.frame.uv_raw).astype(float) if n else np.zeros(0)
-        info.update({f"ms_{k}": v for k, v in times.items()})
+        self._prepared = (ctx, prob_map, info, times)
+
+    def process(self, ctx: DynamicContext) -> MethodOutput:
+        prepared, self._prepared = self._prepared, None
+        if prepared is None or prepared[0] is not ctx:     # not prepared for this frame: do it now
+            self.prepare(ctx)
+            prepared, self._prepared = self._prepared, None
+        _, prob_map, info, times = prepared
+        n = len(ctx.frame)
         self.timings = times
+        info = {**info, **{f"ms_{k}": v for k, v in times.items()}}
+        if prob_map is None:
+            return MethodOutput(np.full(n, np.nan), None, info)
+        prob = keypoints_in_mask(prob_map, ctx.frame.uv_raw).astype(float) if n else np.zeros(0)
         return MethodOutput(prob, prob_map, info)
 
     def end_frame(self, ctx: DynamicContext, output: MethodOutput, T_cw: Optional[np.ndarray],

@@ -119,6 +119,9 @@ class DepthSdfMethod:
         self.classes = classes
         self._person = set(int(c) for c in classes.dynamic)
 
+    def prepare(self, ctx: DynamicContext) -> None:
+        """Nothing to do before the features and detections exist (see ``DynamicMethod.prepare``)."""
+
     def process(self, ctx: DynamicContext) -> MethodOutput:
         frame = ctx.frame
         n = len(frame)

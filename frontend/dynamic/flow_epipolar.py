@@ -243,6 +243,9 @@ class FlowEpipolarMethod:
         return F / np.linalg.norm(F)
 
     # ----------------------------------------------------------------------------------------------
+    def prepare(self, ctx: DynamicContext) -> None:
+        """Nothing to do before the features and detections exist (see ``DynamicMethod.prepare``)."""
+
     def process(self, ctx: DynamicContext) -> MethodOutput:
         cfg = self.cfg
         frame = ctx.frame

@@ -142,13 +142,15 @@ class System:
         index = len(self._frames) if index is None else index
         depth = clean_depth(depth)   # NaN / inf / negative (float depth's "no measurement") -> 0 = invalid
         self._apply_arrived_results()   # before anything uses the predicted pose
-        self.dynamic_filter.begin_frame(rgb, timestamp)
         with self.timer.measure("extract"):
             gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
+        predicted_T_cw, last_T_cw = self.tracker.predicted_T_cw(), self.tracker.last_T_cw
+        # The image-only dynamic work (detector, cpr) runs on threads while the features are extracted.
+        self.dynamic_filter.begin_frame(rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw)
+        with self.timer.measure("extract"):
             frame = self.extractor.extract(gray, depth, index, timestamp)
         with self.timer.measure("dynamic"):
-            probs = self.dynamic_filter.process(frame, rgb, gray, depth, self.tracker.predicted_T_cw(),
-                                                self.tracker.last_T_cw)
+            probs = self.dynamic_filter.process(frame, rgb, gray, depth, predicted_T_cw, last_T_cw)
             frame.dynamic_prob = np.clip(np.nan_to_num(probs, nan=0.0), 0.0, 1.0)
             frame = self._refill_static(frame, gray, depth)
         self.last_frame = frame
