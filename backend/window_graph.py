@@ -43,6 +43,7 @@ class WindowParams:
 
     window_keyframes: int = 6
     iterations: int = 10
+    relative_tol: float = 1e-3    # a window stops when an iteration improves its cost by less (BackendConfig)
     pose_graph_iterations: int = 30
     loop_iterations: int = 5      # the bundle adjustment over a loop's span after its pose graph (0: none)
     # A loop's bundle adjustment: 60 keyframes cover the loops of the TUM/Bonn sequences whole (~2 s, the
@@ -65,6 +66,7 @@ class WindowParams:
     @classmethod
     def from_config(cls, cfg: BackendConfig) -> "WindowParams":
         return cls(window_keyframes=cfg.window_keyframes, iterations=cfg.window_iterations,
+                   relative_tol=cfg.window_relative_tol,
                    final_max_keyframes=cfg.final_global_ba_max_keyframes,
                    essential_min_shared=cfg.essential_min_shared, max_fixed_keyframes=cfg.window_fixed_keyframes)
 
@@ -226,7 +228,7 @@ class LocalWindowBackend(LoopCorrection):
             for h in removed:
                 self._corrections.pop(h, None)
         window = self._window(self._focus, new)
-        self._adjust(window)
+        self._adjust(window, relative_tol=self.window.relative_tol)
         self._solved = True
 
     def optimize_all(self, iterations: Optional[int] = None) -> None:
@@ -262,7 +264,7 @@ class LocalWindowBackend(LoopCorrection):
         cap = 2 * (self.window.window_keyframes + self.window.max_fixed_keyframes)
         return [h for h in self._lm_obs[lm][-cap:] if h in self._obs_ends]
 
-    def _adjust(self, window: set[int], iterations: Optional[int] = None) -> None:
+    def _adjust(self, window: set[int], iterations: Optional[int] = None, relative_tol: float = 1e-5) -> None:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         handles = {h for k in window for h in self._kf_obs[k] if h in self._obs_ends}
         landmarks = sorted({self._obs_ends[h][1] for h in handles})
@@ -308,7 +310,7 @@ class LocalWindowBackend(LoopCorrection):
             ordering.push_back(L(lm))
         for k in sorted(window | fixed):
             ordering.push_back(X(k))
-        result = self._solve(graph, values, iterations or self.window.iterations, ordering)
+        result = self._solve(graph, values, iterations or self.window.iterations, ordering, relative_tol)
         for k in window:
             self._poses.values[self._poses.slot[k]] = result.atPose3(X(k)).matrix()
         if landmarks:
@@ -318,10 +320,13 @@ class LocalWindowBackend(LoopCorrection):
 
     @staticmethod
     def _solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int,
-               ordering: Optional[gtsam.Ordering] = None) -> gtsam.Values:
+               ordering: Optional[gtsam.Ordering] = None, relative_tol: float = 1e-5) -> gtsam.Values:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(iterations)
-        params.setRelativeErrorTol(1e-5)
+        params.setRelativeErrorTol(relative_tol)
+        # Landmarks-first ordering makes every clique but the last a single landmark: the sequential
+        # solver skips the Bayes tree's bookkeeping (same cost values on captured Bonn windows, ~8 % less time).
+        params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
         if ordering is not None:
             params.setOrdering(ordering)
         try:
