@@ -77,6 +77,7 @@ class MethodOutput:
 class DynamicMethod(Protocol):
     name: str
     needs_detector: bool
+    prepares: bool    # whether ``prepare`` does work worth a thread (else the rejector calls it in line)
 
     def prepare(self, ctx: DynamicContext) -> None:
         """The part of the frame's work that needs only the images and the poses (``ctx.frame`` and

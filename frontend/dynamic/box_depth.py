@@ -171,6 +171,7 @@ class BoxDepthMethod:
 
     name = "box_depth"
     needs_detector = True
+    prepares = False
 
     def __init__(self, cfg: BoxDepthConfig, classes: ClassGroups):
         self.cfg = cfg

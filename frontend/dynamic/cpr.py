@@ -228,6 +228,7 @@ class CprMethod:
 
     name = "cpr"
     needs_detector = False
+    prepares = True
 
     def __init__(self, cfg: Optional[CprConfig] = None):
         self.cfg = cfg or CprConfig()

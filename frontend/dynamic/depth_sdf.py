@@ -113,6 +113,7 @@ class DepthSdfMethod:
 
     name = "depth_sdf"
     needs_detector = True
+    prepares = False
 
     def __init__(self, cfg: DepthSdfConfig, classes: ClassGroups):
         self.cfg = cfg

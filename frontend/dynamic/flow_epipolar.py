@@ -160,6 +160,7 @@ class FlowEpipolarMethod:
 
     name = "flow_epipolar"
     needs_detector = True
+    prepares = False
 
     def __init__(self, cfg: FlowEpipolarConfig, classes: ClassGroups):
         self.cfg = cfg

@@ -74,14 +74,15 @@ class DynamicRejector:
             if self._detect_thread is None:
                 self._detect_thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-detector")
             detection = self._detect_thread.submit(self.detector.detect, rgb, timestamp)
-        if self.methods:
+        threaded = [m for m in self.methods if m.prepares]
+        if threaded:
             if self._prepare_thread is None:
                 self._prepare_thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-dynamic")
-            prepared = self._prepare_thread.submit(self._prepare, ctx)
+            prepared = self._prepare_thread.submit(self._prepare, threaded, ctx)
         self._begun = _BegunFrame(timestamp, ctx, detection, prepared)
 
-    def _prepare(self, ctx: DynamicContext) -> None:
-        for method in self.methods:
+    def _prepare(self, methods: list[DynamicMethod], ctx: DynamicContext) -> None:
+        for method in methods:
             with self.timer.measure(f"dynamic.{method.name}"):
                 method.prepare(ctx)
 
@@ -99,12 +100,10 @@ class DynamicRejector:
             self._finish_begun()       # begun for another frame: this one is computed here, in line
         begun, self._begun = self._begun, None
         ctx = DynamicContext(frame, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
+        prepared = None
         if begun is not None:
-            ctx = begun.ctx
+            ctx, prepared = begun.ctx, begun.prepared
             ctx.frame = frame
-            if begun.prepared is not None:
-                with self.timer.measure("dynamic.prepare_wait"):
-                    begun.prepared.result()    # re-raises a method's failure here, in frame order
         if self.detector is not None:  # built only when a method or the box prior needs it
             with self.timer.measure("dynamic.detector"):   # with begin_frame: the wait for the thread
                 if begun is not None and begun.detection is not None:
@@ -112,11 +111,21 @@ class DynamicRejector:
                 else:
                     ctx.detections = self.detector.detect(rgb, frame.timestamp)
                 ctx.detections = self._box_memory.update(ctx.detections)
+        # The methods without threaded work first, while the threaded ones (cpr) may still run; the
+        # methods are independent, so the order changes no output, and they are fused in config order.
         outputs: dict[str, MethodOutput] = {}
-        for method in self.methods:
+        for method in sorted(self.methods, key=lambda m: m.prepares):
+            if method.prepares and prepared is not None:
+                with self.timer.measure("dynamic.prepare_wait"):
+                    prepared.result()          # re-raises a method's failure here, in frame order
+                prepared = None
             with self.timer.measure(f"dynamic.{method.name}"):
+                if not method.prepares:
+                    method.prepare(ctx)
                 outputs[method.name] = method.process(ctx)
-            self.stats.add(method.name, outputs[method.name].flagged)
+        outputs = {m.name: outputs[m.name] for m in self.methods}
+        for name, out in outputs.items():
+            self.stats.add(name, out.flagged)
         fused = fuse([o.prob for o in outputs.values()], self._weights, self.cfg.fusion, len(frame))
         prior_mask = self._box_prior_mask(ctx)
         if prior_mask is not None:
