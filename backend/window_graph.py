@@ -43,7 +43,7 @@ class WindowParams:
 
     window_keyframes: int = 6
     iterations: int = 10
-    relative_tol: float = 1e-3    # a window stops when an iteration improves its cost by less (BackendConfig)
+    relative_tol: float = 1e-3    # a window or loop adjustment stops when an iteration improves its cost by less
     pose_graph_iterations: int = 30
     loop_iterations: int = 5      # the bundle adjustment over a loop's span after its pose graph (0: none)
     # A loop's bundle adjustment: 60 keyframes cover the loops of the TUM/Bonn sequences whole (~2 s, the

@@ -178,7 +178,10 @@ class BackendConfig(ConfigSection):
     keyframe is adjusted again in the next ~window_keyframes windows and by the final adjustment, so one
     window need not converge to the last 0.1 %: 1e-3 instead of 1e-5 (with the sequential solver) cut the
     worker's CPU time by 28-39 % (fr1/rpy 28.9 -> 20.7 s, Bonn-480 28.0 -> 17.2 s) at ATE 0.0221 -> 0.0222 m
-    and 0.0132 -> 0.0127 m (one run each). Loop corrections and the final adjustment keep 1e-5."""
+    and 0.0132 -> 0.0127 m (one run each). A loop's bundle adjustment (at most loop_iterations) uses it too:
+    the loop keyframe waits for it, Bonn-480's back end on the tracking path 13.9 -> 9.4 ms per frame, ATE
+    fr1/rpy 0.0215 / Bonn 0.0124 m, the same loop residuals within 1 mm, the drift room of
+    tests/test_loop_closing.py 0.0190 m (was 0.0192). The final adjustment keeps 1e-5."""
     essential_min_shared: int = Field(100, ge=1)
     """Loop correction: keyframe pairs sharing this many landmarks are tied in the pose graph (ORB-SLAM: 100)."""
     final_global_ba: bool = True
