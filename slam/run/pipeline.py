@@ -90,6 +90,9 @@ class RunSummary:
     dynamic_flagged: dict[str, dict[str, float]] = field(default_factory=dict)  # per method and fused
     loops: list[dict[str, Any]] = field(default_factory=list)   # every loop factor added, with timestamps
     place_recognition: dict[str, Any] = field(default_factory=dict)  # loop / relocalization counts and ms
+    # Tracked frames' pose uncertainty (FrameOutput.pose_sigma_m, mm): median, p95, max and the frame of the
+    # max; a weakly held stretch (few static features) shows here before it shows in the error.
+    pose_sigma_mm: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -155,6 +158,7 @@ class Pipeline:
         self.summary = RunSummary(dataset=getattr(dataset, "name", "dataset"), output_dir=str(self.output_dir),
                                   dataset_path=None if root is None else str(Path(root).resolve()),
                                   realtime=bool(config.runtime.realtime))
+        self._pose_sigmas: list[tuple[float, int]] = []    # (sigma m, frame index) of tracked frames
         self.report: Optional[EvaluationReport] = None
         self.artifacts = RunArtifacts(self.output_dir, config, needs_keyframe_copies(dataset))  # export inputs
         self.checks = InputChecks(config.camera.width, config.camera.height, getattr(dataset, "name", "dataset"))
@@ -244,6 +248,8 @@ class Pipeline:
         else:
             self.summary.tracked += 1
             online.append(out.timestamp, out.T_wc)
+            if np.isfinite(out.pose_sigma_m):
+                self._pose_sigmas.append((out.pose_sigma_m, out.index))
 
     def _finish_observers(self, raise_errors: bool) -> None:
         """Every observer's ``on_finish``, each once, even when one of them fails; with ``raise_errors``
@@ -335,6 +341,13 @@ class Pipeline:
         write_text_atomic(self.output_dir / "evaluation.json", json.dumps(self.report.to_dict(), indent=2) + "\n")
 
     def _write_summary(self) -> None:
+        if self._pose_sigmas:
+            sigma = np.array([s for s, _ in self._pose_sigmas]) * 1e3
+            worst = int(np.argmax(sigma))
+            self.summary.pose_sigma_mm = {"median": round(float(np.median(sigma)), 3),
+                                          "p95": round(float(np.percentile(sigma, 95)), 3),
+                                          "max": round(float(sigma[worst]), 3),
+                                          "max_frame": int(self._pose_sigmas[worst][1])}
         write_text_atomic(self.output_dir / "summary.json", json.dumps(self.summary.to_dict(), indent=2) + "\n")
 
     def _expected_frames(self) -> Optional[int]:

@@ -49,6 +49,10 @@ class FrameOutput:
     is_keyframe: bool
     n_features: int
     n_tracked: int
+    # How far the pose's inliers let its position slide along the weakest direction (1 sigma, metres);
+    # NaN where tracking did not estimate one (lost, the first frame). Beyond tracking.max_pose_sigma_m
+    # the frame is LOST.
+    pose_sigma_m: float = float("nan")
 
 
 class _MapView:
@@ -305,7 +309,8 @@ class System:
             T_wc = self._add_keyframe(frame, T_wc, result.landmark_of_keypoint)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
         self._frames.add(frame.timestamp, self._reference_kf, T_kf_c)
-        return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids))
+        return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids),
+                           float(result.pose_sigma_t))
 
     def _add_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, landmark_of_keypoint: np.ndarray) -> np.ndarray:
         """Insert the keyframe, look for a loop, then one graph update for both (one hand-over to the
@@ -360,7 +365,8 @@ class System:
         self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
         self._frames.add(frame.timestamp, self._reference_kf, T_kf_c)
-        return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, False, len(frame), len(tracked_ids))
+        return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, False, len(frame), len(tracked_ids),
+                           float(result.pose_sigma_t))
 
     def _decide_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray, n_tracked: int) -> bool:
         ref = self.mapper.map.keyframes[self._reference_kf]
