@@ -1,7 +1,9 @@
 """Sub-point-cloud correlation (CPR-SLAM, Yu, Zheng & Ou 2024, seed 000): geometric, needs no detector.
 
-``CprMethod(cfg: CprConfig)`` follows the ``DynamicMethod`` protocol (``process`` before tracking,
-``end_frame`` after). Per frame (Sections 3.3-3.8; steps 1-3 live in ``cpr_cloud.py``, 4-8 in ``cpr_icp.py``):
+``CprMethod(cfg: CprConfig)`` follows the ``DynamicMethod`` protocol (``prepare``, then ``process`` before
+tracking, ``end_frame`` after). Steps 1-10 need no features, so they are ``prepare`` (``prepares = True``: the
+rejector runs it on a thread while the features are extracted); ``process`` only reads the mask at the
+keypoints. Per frame (Sections 3.3-3.8; steps 1-3 live in ``cpr_cloud.py``, 4-8 in ``cpr_icp.py``):
 
 1. Point cloud from every ``sample_step``-th row/column of the depth image; depth > ``max_depth`` invalid.
 2. Voxel filter (``voxel_size``): centroid and mean grey value per voxel (Eq. 2), index table + bincount.
