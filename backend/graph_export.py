@@ -57,7 +57,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from slam.core.atomic_io import write_text_atomic
-from slam.core.geometry import invert
+from slam.core.geometry import invert, nearest_rotations
 
 EDGE_KINDS = ("odometry", "covisibility", "loop")
 JSON_FORMAT = "dynslam-graph"
@@ -94,10 +94,7 @@ def poses_to_tq(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     T = np.asarray(T, dtype=float).reshape(-1, 4, 4)
     if len(T) == 0:
         return np.zeros((0, 3)), np.zeros((0, 4))
-    U, _, Vt = np.linalg.svd(T[:, :3, :3])
-    d = np.ones((len(T), 3))
-    d[:, 2] = np.linalg.det(U @ Vt)
-    q = Rotation.from_matrix((U * d[:, None, :]) @ Vt).as_quat()
+    q = Rotation.from_matrix(nearest_rotations(T[:, :3, :3])).as_quat()
     q[q[:, 3] < 0] *= -1.0
     return T[:, :3, 3].copy(), q / np.linalg.norm(q, axis=1, keepdims=True)
 

@@ -95,12 +95,20 @@ def orthonormalize(T: np.ndarray) -> np.ndarray:
     Chains of products (velocity model, composed relative poses) accumulate rounding error that
     otherwise grows geometrically, since each prediction multiplies the previous error in.
     """
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
     out = T.copy()
-    out[:3, :3] = R
+    out[:3, :3] = nearest_rotations(T[:3, :3])
     out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def nearest_rotations(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest to each 3x3 matrix of ``R`` ((3, 3) or (n, 3, 3)), by SVD: U V^T, with U's last
+    column negated where that product would be a reflection."""
+    U, _, Vt = np.linalg.svd(R)
+    out = U @ Vt
+    flip = np.linalg.det(out) < 0
+    if np.any(flip):
+        U = U.copy()
+        U[..., :, -1] = np.where(flip[..., None], -U[..., :, -1], U[..., :, -1])
+        out = U @ Vt
     return out
