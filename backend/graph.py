@@ -28,6 +28,7 @@ from gtsam.symbol_shorthand import L, X
 
 # re-exported: the public names of the back end's core (backend/__init__.py, README)
 from backend.factors import BackendError, BackendParams, FactorBuilder, StereoCalibration, pose3
+from slam.core.geometry import relative_pose_residual
 
 __all__ = ["BackendError", "BackendParams", "FactorGraphBackend", "StereoCalibration", "pose3"]
 
@@ -108,10 +109,7 @@ class FactorGraphBackend:
         if handle not in self._relative:
             raise BackendError(f"factor handle {handle} is not a live relative-pose factor")
         a, b, T_ab = self._relative[handle]
-        T_a, T_b = self.keyframe_pose(a), self.keyframe_pose(b)
-        E = np.linalg.solve(T_ab, np.linalg.solve(T_a, T_b))
-        angle = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-        return float(np.linalg.norm(E[:3, 3])), float(angle)
+        return relative_pose_residual(self.keyframe_pose(a), self.keyframe_pose(b), T_ab)
 
     def remove_factors(self, handles: Iterable[int]) -> None:
         """Remove factors by their handles: pending ones are dropped, solved ones leave iSAM2 in

@@ -33,6 +33,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from slam.core.config import BackendConfig
+from slam.core.geometry import relative_pose_residual
 from backend.factors import BackendError, BackendParams, FactorBuilder, StereoCalibration, pose3
 from backend.window_loops import LoopCorrection
 
@@ -189,9 +190,7 @@ class LocalWindowBackend(LoopCorrection):
         if handle not in self._relative:
             raise BackendError(f"factor handle {handle} is not a live relative-pose factor")
         a, b, T_ab = self._relative[handle]
-        E = np.linalg.solve(T_ab, np.linalg.solve(self.keyframe_pose(a), self.keyframe_pose(b)))
-        angle = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-        return float(np.linalg.norm(E[:3, 3])), float(angle)
+        return relative_pose_residual(self.keyframe_pose(a), self.keyframe_pose(b), T_ab)
 
     def remove_factors(self, handles: Iterable[int]) -> None:
         handles = list(handles)

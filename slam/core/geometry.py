@@ -89,6 +89,14 @@ def pose_distance(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(D[:3, 3])), float(rotation_angle_deg(D[:3, :3]))
 
 
+def relative_pose_residual(T_wa: np.ndarray, T_wb: np.ndarray, T_ab: np.ndarray) -> tuple[float, float]:
+    """How far poses a and b disagree with a measured relative pose T_ab (a loop, an odometry edge):
+    translation (m) and rotation (deg) of T_ab^-1 T_wa^-1 T_wb."""
+    E = np.linalg.solve(T_ab, np.linalg.solve(T_wa, T_wb))
+    angle = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(np.linalg.norm(E[:3, 3])), float(angle)
+
+
 def orthonormalize(T: np.ndarray) -> np.ndarray:
     """Project a pose's rotation back onto SO(3) (nearest rotation by SVD).
 

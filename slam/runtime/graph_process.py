@@ -47,6 +47,7 @@ from backend.factors import BackendError, BackendParams, StereoCalibration
 from backend.graph_protocol import GraphBackend
 from backend.local_mapping import build_graph
 from slam.core.config import BackendConfig
+from slam.core.geometry import relative_pose_residual
 
 
 @dataclass(frozen=True)
@@ -223,9 +224,7 @@ class GraphProcess:
         if handle not in self._solved_relative:
             return 0.0, 0.0
         a, b, T_ab = self._relative[handle]
-        E = np.linalg.solve(T_ab, np.linalg.solve(self.keyframe_pose(a), self.keyframe_pose(b)))
-        angle = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-        return float(np.linalg.norm(E[:3, 3])), float(angle)
+        return relative_pose_residual(self.keyframe_pose(a), self.keyframe_pose(b), T_ab)
 
     def remove_factors(self, handles: Iterable[int]) -> None:
         handles = [int(h) for h in handles]
