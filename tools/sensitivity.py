@@ -68,6 +68,8 @@ PARAMETERS = (
               "standard-deviation fit"),
     Parameter("dynamic.cpr.mad_scale", "CPR's MAD threshold multiplier (eps = mean + mad_scale * MAD, Eqs. 14-16; "
               "tau only acts with refine on, off by default)"),
+    Parameter("backend.smoothing_sigma_acc", "the final trajectory smoother's acceleration sigma (m/s^2): how far a "
+              "loosely tracked frame may leave its neighbours' motion"),
 )
 
 
@@ -282,8 +284,17 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--quiet", "-q", action="store_true", help="no per-run progress lines")
     parser.add_argument("--tables-only", action="store_true",
                         help="rewrite sensitivity.* from the runs already in --output (sweep.json), run nothing")
+    parser.add_argument("--only", action="append", metavar="KEY",
+                        help="vary only this parameter (repeatable; default: all of them)")
     args = parser.parse_args(argv)
-    grid = variations()
+    parameters = PARAMETERS
+    if args.only:
+        unknown = sorted(set(args.only) - {p.key for p in PARAMETERS})
+        if unknown:
+            parser.error(f"--only: unknown parameter(s) {', '.join(unknown)}; "
+                         f"choose from {', '.join(p.key for p in PARAMETERS)}")
+        parameters = tuple(p for p in PARAMETERS if p.key in args.only)
+    grid = variations(parameters=parameters)
     sequences = QUICK_SEQUENCES if args.quick else SEQUENCES
     cache = str(Path(args.detection_cache).expanduser().resolve()) if args.detection_cache else None
     spec = sweep_spec(grid, sequences, args.repeats, QUICK_FRAMES if args.quick else None, cache)
