@@ -198,6 +198,7 @@ def test_sigint_stops_after_the_frame_and_writes_every_result(tmp_path):
 
 # --- 2. SIGKILL ----------------------------------------------------------------------------------------
 
+@pytest.mark.slow   # a whole run: kept out of the fast tier (< 2 min)
 @pytest.mark.parametrize("moment", ["mid-run", "final writes"])
 def test_sigkill_leaves_only_complete_files(tum_folder, tmp_path, moment):
     """Killed without warning: the online trajectory parses up to its last full line, and every final
@@ -476,6 +477,7 @@ def test_an_unmapped_place_stays_lost():
     assert all(back)
 
 
+@pytest.mark.slow   # a whole run: kept out of the fast tier (< 2 min)
 def test_a_map_of_another_place_never_localizes_and_stays_unchanged(tmp_path, capsys):
     room_a = write_tum_layout(synthetic_sequence(20, seed=0), tmp_path / "room_a")
     room_b = write_tum_layout(synthetic_sequence(15, seed=1), tmp_path / "room_b")

@@ -177,6 +177,7 @@ def test_graph_edges_from_mapper_weights():
         np.testing.assert_allclose(e.T_ab, invert(poses[e.a]) @ poses[e.b], atol=1e-12)
 
 
+@pytest.mark.slow   # a whole run: kept out of the fast tier (< 2 min)
 def test_system_graph_exports_to_gtsam(tmp_path):
     from slam.core.config import load_config
     from slam.datasets import SyntheticSequence

@@ -179,6 +179,7 @@ def test_cli_save_and_load_map(tmp_path, monkeypatch):
     assert main(["run", str(root), "-o", str(tmp_path / "d"), "-q", "--load-map", str(tmp_path / "bad.npz")]) == 2
 
 
+@pytest.mark.slow   # a whole run: kept out of the fast tier (< 2 min)
 @pytest.mark.real
 def test_localization_only_on_fr1_xyz(tmp_path):
     root = real_sequence(XYZ)

@@ -103,6 +103,7 @@ def test_realtime_defaults_to_on_for_a_live_source_and_off_for_a_recording(tmp_p
         live.system.close()
 
 
+@pytest.mark.slow   # a whole run: kept out of the fast tier (< 2 min)
 def test_slow_realtime_replay_drops_frames_and_writes_a_complete_trajectory(tmp_path, monkeypatch):
     """Every frame costs 1.7 frame intervals (simulated): about 40 % of the frames are dropped, the count
     is reported, and the frames processed still give a complete trajectory with a sane ATE."""
