@@ -12,7 +12,7 @@ translation can be loose although every inlier agrees.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -40,6 +40,10 @@ class PoseResult:
     inliers: np.ndarray     # (N,) bool
     chi2: np.ndarray        # (N,)
     sigma_t: float = float("inf")   # largest translation standard deviation the inliers alone allow (m)
+    # (3,3) covariance of the translation part of the left twist (points only, rotation marginalised;
+    # NaN when the inliers do not fix it). To first order the camera centre moves by -R_cw^T v, so
+    # R_cw^T cov_t R_cw is the centre's covariance in the world frame.
+    cov_t: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
 
 
 def _residuals_and_jacobians(T_cw, obs: PoseObservations, fx, fy, cx, cy, bf):
@@ -109,19 +113,22 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
         active = (chi2 <= threshold) & (depth > 1e-3)
         if active.sum() < 10:
             break
-    return PoseResult(orthonormalize(T), active, chi2, _translation_sigma(J, obs.information, active))
+    cov_t = _translation_covariance(J, obs.information, active)
+    sigma_t = float(np.sqrt(max(np.linalg.eigvalsh(cov_t).max(), 0.0))) if np.isfinite(cov_t).all() else float("inf")
+    return PoseResult(orthonormalize(T), active, chi2, sigma_t, cov_t)
 
 
-def _translation_sigma(J: np.ndarray, information: np.ndarray, inliers: np.ndarray) -> float:
-    """sqrt of the largest eigenvalue of the translation block of the points-only covariance (H^-1): how
-    far along its weakest direction the inliers let the camera slide (the prior left out: it says how
-    well the map alone places the frame)."""
+def _translation_covariance(J: np.ndarray, information: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+    """Translation block of the points-only covariance (H^-1); sqrt of its largest eigenvalue is how far
+    along its weakest direction the inliers let the camera slide (the prior left out: it says how well
+    the map alone places the frame). NaN when fewer than 3 inliers or H is singular."""
+    nan = np.full((3, 3), np.nan)
     if inliers.sum() < 3:
-        return float("inf")
+        return nan
     Jw = (J * (information * inliers)[:, None, None]).reshape(-1, 6)
     H = Jw.T @ J.reshape(-1, 6)
     try:
         covariance = np.linalg.inv(H)
     except np.linalg.LinAlgError:
-        return float("inf")
-    return float(np.sqrt(max(np.linalg.eigvalsh(covariance[3:, 3:]).max(), 0.0)))
+        return nan
+    return covariance[3:, 3:]

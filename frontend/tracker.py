@@ -61,6 +61,9 @@ class TrackingResult:
     # How far the inliers alone let the position slide along its weakest direction (1 sigma, metres);
     # beyond tracking.max_pose_sigma_m the frame is LOST.
     pose_sigma_t: float = float("inf")
+    # (3,3) covariance of the camera centre in the world frame from the same information (NaN: unknown):
+    # what the final trajectory's smoother weighs this frame's position by.
+    position_cov_w: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
 
 
 @dataclass
@@ -94,6 +97,7 @@ class Tracker:
         self._velocity: Optional[np.ndarray] = None
         self._prior: Optional[PosePrior] = None   # this frame's motion-model prior (None: none)
         self._pose_sigma_t = float("inf")         # of the last pose optimisation
+        self._pose_cov_t = np.full((3, 3), np.nan)  # of the last pose optimisation (twist frame)
         sigmas = np.r_[np.full(3, np.deg2rad(cfg.motion_prior_sigma_deg)), np.full(3, cfg.motion_prior_sigma_m)]
         self._prior_information = 1.0 / sigmas**2 if (sigmas > 0).all() else None
 
@@ -173,8 +177,9 @@ class Tracker:
         self.state = TrackingState.OK
         self._remember(frame, T_cw, lm_of_kp)
         dyn_ids, dyn_probs = self._dynamic_evidence(frame, local, T_cw, eligible, corr.point_ids)
+        R_cw = T_cw[:3, :3]
         return TrackingResult(TrackingState.OK, T_cw, lm_of_kp, landmark_inliers, visible, method, dyn_ids, dyn_probs,
-                              self._pose_sigma_t)
+                              self._pose_sigma_t, R_cw.T @ self._pose_cov_t @ R_cw)
 
     def _dynamic_evidence(self, frame, local: MapPoints, T_cw, eligible, used_ids):
         """Match local landmarks to the features kept out as dynamic (they never move the pose)."""
@@ -283,5 +288,5 @@ class Tracker:
         obs = PoseObservations(corr.xyz, frame.uv[kp], frame.u_right[kp], information)
         result = optimize_pose(T_cw, obs, self.camera, self.cfg.pose_iterations, self.cfg.pose_rounds,
                                self.cfg.chi2_mono, self.cfg.chi2_stereo, self._prior)
-        self._pose_sigma_t = result.sigma_t
+        self._pose_sigma_t, self._pose_cov_t = result.sigma_t, result.cov_t
         return result.T_cw, corr.subset(result.inliers)

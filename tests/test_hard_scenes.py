@@ -109,9 +109,9 @@ def clean_ate() -> float:
 
 
 # Measured at the commit that added them (python tools/hard_scenes.py): ATE / clean, worst tracked frame.
+# close_pass passed with the trajectory smoother (1.42x: 3.8 vs 2.7 mm, worst frame 12 mm).
 _NOT_YET = {
-    "close_pass": "ATE 1.57x the clean path's (5.9 vs 3.8 mm); worst frame 24 mm",
-    "three_close": "ATE 2.0x the clean path's (7.5 vs 3.8 mm), worst tracked frame 20 mm, 13 frames LOST",
+    "three_close": "ATE 2.24x the clean path's (6.1 vs 2.7 mm), worst tracked frame 14.5 mm, 13 frames LOST",
 }
 
 

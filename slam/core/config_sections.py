@@ -189,6 +189,12 @@ class BackendConfig(ConfigSection):
     ORB-SLAM's full BA after a loop). The windows leave the map locally right but globally bent where a
     window never saw the whole: fr1/rpy with the default config 0.0337 m without, 0.0243 m with. Its cost
     grows with the map but is paid once, when nobody waits for a pose."""
+    smoothing_sigma_acc: float = Field(2.0, ge=0)
+    """The final trajectory's camera positions are smoothed with a motion model whose
+    acceleration has this sigma per axis (m/s^2), each frame weighed by its own tracking covariance
+    (slam/runtime/trajectory_smoother.py); 0 = off. 2 m/s^2 per axis covers the 99th percentile of the
+    ground-truth camera accelerations (norm, at 30 Hz, mocap noise included) of TUM fr1 rpy/xyz/desk
+    (1.5-3.1) and Bonn crowd (1.1): hand-held motion. The online trajectory is never smoothed."""
     final_global_ba_max_keyframes: int = Field(300, ge=2)
     """Bound of that adjustment: beyond it only the newest keyframes are adjusted (against fixed neighbours).
     The whole of a 1,000-keyframe map (5,000 generated frames) took minutes and 6 GB; 300 keyframes cover

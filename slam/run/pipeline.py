@@ -318,7 +318,7 @@ class Pipeline:
     def _write_dynamic_counts(self, flagged: dict[str, list[int]]) -> None:
         """dynamic.csv: per frame, how many features each method and the fusion flagged."""
         names = list(flagged)
-        stamps = self.system.trajectory()[0]
+        stamps = self.system.trajectory(smoothed=False)[0]
         rows = ["timestamp," + ",".join(names)]
         for i in range(min([len(stamps)] + [len(v) for v in flagged.values()])):
             rows.append(f"{stamps[i]:.6f}," + ",".join(str(flagged[n][i]) for n in names))

@@ -233,7 +233,7 @@ class RerunObserver:
             rec.log("world/camera/image/dynamic_mask", rr.SegmentationImage(classes))
 
     def _log_trajectory(self, system: System) -> None:
-        _, poses, tracked = system.trajectory()
+        _, poses, tracked = system.trajectory(smoothed=False)   # every frame: the smoother's solve is for the end
         xyz = thin_path(poses[tracked][:, :3, 3], self.options.max_trajectory_points)
         self._rec.log("world/trajectory", self.rr.LineStrips3D([xyz], colors=[[0, 160, 255]]))
 

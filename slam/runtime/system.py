@@ -248,13 +248,17 @@ class System:
     def num_landmarks(self) -> int:
         return int((~self.mapper.map.landmarks.bad).sum())
 
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def trajectory(self, smoothed: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(timestamps (N,), T_wc (N,4,4), tracked (N,) bool) for every processed frame.
 
         Each tracked frame's pose is its reference keyframe's optimised pose composed with the
-        frame's pose relative to it; untracked frames hold NaN poses.
+        frame's pose relative to it, the positions smoothed with the motion model of
+        ``backend.smoothing_sigma_acc`` (slam/runtime/trajectory_smoother.py) unless ``smoothed`` is False
+        (a live view that asks every frame: one solve costs ~15 ms per 1,000 frames); untracked frames hold
+        NaN poses.
         """
-        return self._frames.trajectory(self.mapper.map.kf_T_wc)
+        sigma_acc = self.config.backend.smoothing_sigma_acc if smoothed else 0.0
+        return self._frames.trajectory(self.mapper.map.kf_T_wc, sigma_acc)
 
     def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         kfs = self.mapper.map.keyframes
@@ -308,7 +312,7 @@ class System:
         if is_keyframe:
             T_wc = self._add_keyframe(frame, T_wc, result.landmark_of_keypoint)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
-        self._frames.add(frame.timestamp, self._reference_kf, T_kf_c)
+        self._frames.add(frame.timestamp, self._reference_kf, T_kf_c, result.position_cov_w)
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids),
                            float(result.pose_sigma_t))
 
@@ -364,7 +368,7 @@ class System:
         tracked_ids = result.landmark_of_keypoint[result.landmark_of_keypoint >= 0]
         self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
-        self._frames.add(frame.timestamp, self._reference_kf, T_kf_c)
+        self._frames.add(frame.timestamp, self._reference_kf, T_kf_c, result.position_cov_w)
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, False, len(frame), len(tracked_ids),
                            float(result.pose_sigma_t))
 
