@@ -244,9 +244,12 @@ def bonn_run(accuracy_runs):
 
 
 # Ghost shares measured on the gates' Bonn run (printed at the end of the test run); each gate is 15 %
-# above its measurement, the regression margin of every accuracy gate.
-GHOSTS_WHOLE_RUN = 0.0024        # with masks, the whole run
-GHOSTS_AMONG_PEOPLE = 0.0025     # with masks, keyframes from frame 230 on
+# above its measurement, the regression margin of every accuracy gate. 2026-11-26: 0.0024 / 0.0025
+# before the final trajectory smoother, 0.0028 / 0.0030 with it. The mesh is fused from the keyframes'
+# adjusted poses while the check projects it with trajectory.txt's (smoothed) poses; a few mm between
+# them shows on thin structures. The masks' effect is unchanged (among people 0.0030 vs 0.0063 without).
+GHOSTS_WHOLE_RUN = 0.0028        # with masks, the whole run
+GHOSTS_AMONG_PEOPLE = 0.0030     # with masks, keyframes from frame 230 on
 
 
 @pytest.mark.real
