@@ -157,6 +157,7 @@ class TrackingLoop:
                 result = self.tracker.resume(frame, source, invert(found.T_wc), found.feature_idx, points)
             self.reloc_times_ms.append((time.perf_counter() - start) * 1e3)
         return result if result is not None and result.state == TrackingState.OK else None
+
     def _track(self, frame: FeatureFrame) -> FrameOutput:
         result = self._relocalize(frame, self._map_view) if self.tracker.state == TrackingState.LOST else None
         if result is None:
