@@ -111,7 +111,7 @@ def clean_ate() -> float:
 # Measured at the commit that added them (python tools/hard_scenes.py): ATE / clean, worst tracked frame.
 # close_pass passed with the trajectory smoother (1.42x: 3.8 vs 2.7 mm, worst frame 12 mm).
 _NOT_YET = {
-    "three_close": "ATE 2.24x the clean path's (6.1 vs 2.7 mm), worst tracked frame 14.5 mm, 13 frames LOST",
+    "three_close": "ATE 2.22x the clean path's (6.0 vs 2.7 mm), worst tracked frame 14.4 mm, 13 frames LOST",
 }
 
 

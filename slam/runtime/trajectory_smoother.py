@@ -10,7 +10,9 @@ positions minimise
 
 over each run of consecutive tracked frames (a LOST frame breaks the chain): a linear, sparse least
 squares problem, solved exactly. A well-fixed frame (C_i of a few mm^2) barely moves; a loosely fixed
-one follows its neighbours. Rotations are left as estimated. This is the discrete form of a
+one follows its neighbours. A few Huber rounds (iteratively reweighted, at the pose optimisation's own
+3-dof chi-square bound) let a frame that is confidently wrong (a pose people pulled: small C_i, far
+from its neighbours' motion) count less, as a robust kernel does for an outlier observation. Rotations are left as estimated. This is the discrete form of a
 white-noise-on-jerk-free (constant-velocity between samples) motion prior as used by continuous-time
 trajectory estimators; it only uses what the run measured, so it can run at the end of a dataset run,
 never online (``trajectory_online.txt`` keeps the causal estimate).
@@ -24,6 +26,10 @@ from scipy.sparse.linalg import spsolve
 # A frame without a usable covariance (the first keyframe, whose pose is defined, not measured) is
 # held at its position by this sigma.
 _FIXED_SIGMA_M = 1e-4
+# Robust rounds: Huber at the 95 % chi-square bound of 3 dof (7.815), the pose optimisation's own
+# stereo threshold; a fixed number of rounds keeps the result deterministic.
+_HUBER_K = float(np.sqrt(7.815))
+_ROBUST_ROUNDS = 4
 
 
 def smooth_positions(stamps: np.ndarray, positions: np.ndarray, covariances: np.ndarray, tracked: np.ndarray,
@@ -62,7 +68,16 @@ def _smooth_run(t: np.ndarray, m: np.ndarray, cov: np.ndarray, sigma_acc: float)
     vals = np.stack([c / h[:-1], -c * (1.0 / h[:-1] + 1.0 / h[1:]), c / h[1:]], axis=1).ravel()
     D = sparse.csr_matrix((vals, (rows, cols)), shape=(n - 2, n))
     A = sparse.kron(D, sparse.identity(3), format="csr")
-    W = sparse.block_diag(list(information), format="csr")
-    lhs = (W + A.T @ A).tocsc()
-    rhs = W @ m.reshape(-1)
-    return np.asarray(spsolve(lhs, rhs)).reshape(n, 3)
+    AtA = A.T @ A
+    weights = np.ones(n)
+    for _ in range(_ROBUST_ROUNDS + 1):
+        W = sparse.block_diag(list(information * weights[:, None, None]), format="csr")
+        x = np.asarray(spsolve((W + AtA).tocsc(), W @ m.reshape(-1))).reshape(n, 3)
+        # Huber weights on each frame's own term (IRLS): a frame whose position disagrees with its
+        # neighbours' motion by more than its covariance allows (a pose people pulled, confidently
+        # wrong) counts less in the next round.
+        d = x - m
+        r = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", d, information, d), 0.0))
+        weights = np.where(r <= _HUBER_K, 1.0, _HUBER_K / np.maximum(r, 1e-12))
+        weights[~usable] = 1.0
+    return x
