@@ -10,6 +10,7 @@ from slam.runtime.trajectory_smoother import smooth_positions
 
 RATE_HZ = 30.0
 SIGMA_ACC = 2.0
+CHI2 = 7.815          # tracking.chi2_stereo's default, what System passes
 
 
 def _path(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -28,7 +29,7 @@ def test_a_loosely_fixed_stretch_follows_its_well_fixed_neighbours():
     sigma = np.full(len(t), 0.002)
     sigma[120:150] = 0.02          # a person close to the camera: the background fixes the pose loosely
     measured = truth + rng.normal(size=truth.shape) * sigma[:, None]
-    smoothed = smooth_positions(t, measured, _isotropic(sigma), np.ones(len(t), bool), SIGMA_ACC)
+    smoothed = smooth_positions(t, measured, _isotropic(sigma), np.ones(len(t), bool), SIGMA_ACC, CHI2)
     raw_err = np.linalg.norm(measured - truth, axis=1)
     err = np.linalg.norm(smoothed - truth, axis=1)
     assert err[120:150].mean() < 0.3 * raw_err[120:150].mean(), (err[120:150].mean(), raw_err[120:150].mean())
@@ -42,7 +43,7 @@ def test_a_well_fixed_frame_keeps_its_position():
     sigma = np.full(len(t), 0.02)
     sigma[50] = 1e-4               # one frame fixed to 0.1 mm among loose ones
     measured = truth + rng.normal(size=truth.shape) * sigma[:, None]
-    smoothed = smooth_positions(t, measured, _isotropic(sigma), np.ones(len(t), bool), SIGMA_ACC)
+    smoothed = smooth_positions(t, measured, _isotropic(sigma), np.ones(len(t), bool), SIGMA_ACC, CHI2)
     assert np.linalg.norm(smoothed[50] - measured[50]) < 5e-4
 
 
@@ -50,7 +51,7 @@ def test_exact_constant_velocity_with_a_dropped_frame_is_left_as_it_is():
     """Zero acceleration is no residual, also across an interval twice as long (divided differences)."""
     t = np.delete(np.arange(60) / RATE_HZ, 30)
     positions = np.c_[0.4 * t, -0.2 * t, 0.05 * t + 1.0]
-    smoothed = smooth_positions(t, positions, _isotropic(np.full(len(t), 0.01)), np.ones(len(t), bool), SIGMA_ACC)
+    smoothed = smooth_positions(t, positions, _isotropic(np.full(len(t), 0.01)), np.ones(len(t), bool), SIGMA_ACC, CHI2)
     np.testing.assert_allclose(smoothed, positions, atol=1e-9)
 
 
@@ -62,7 +63,7 @@ def test_a_lost_frame_breaks_the_chain():
     tracked = np.ones(len(t), bool)
     tracked[20] = False
     positions[20] = np.nan
-    smoothed = smooth_positions(t, positions, _isotropic(np.full(len(t), 0.01)), tracked, SIGMA_ACC)
+    smoothed = smooth_positions(t, positions, _isotropic(np.full(len(t), 0.01)), tracked, SIGMA_ACC, CHI2)
     np.testing.assert_allclose(smoothed[tracked], positions[tracked], atol=1e-9)
     assert np.isnan(smoothed[20]).all()
 
@@ -75,7 +76,7 @@ def test_a_frame_without_covariance_is_held_and_short_runs_are_untouched():
     cov[0] = np.nan                # the first keyframe: defined, not measured
     tracked = np.ones(len(t), bool)
     tracked[[45, 48]] = False      # runs of 2 and 1 frames after them: nothing to smooth with
-    smoothed = smooth_positions(t, measured, cov, tracked, SIGMA_ACC)
+    smoothed = smooth_positions(t, measured, cov, tracked, SIGMA_ACC, CHI2)
     assert np.linalg.norm(smoothed[0] - measured[0]) < 1e-3
     np.testing.assert_array_equal(smoothed[46:48], measured[46:48])
     np.testing.assert_array_equal(smoothed[49], measured[49])
@@ -93,7 +94,7 @@ def test_frame_log_smooths_only_when_asked_and_keeps_rotations():
     kf_T_wc = np.eye(4)[None]
     _, raw, _ = log.trajectory(kf_T_wc)
     _, same, _ = log.trajectory(kf_T_wc, 0.0)
-    _, smoothed, tracked = log.trajectory(kf_T_wc, SIGMA_ACC)
+    _, smoothed, tracked = log.trajectory(kf_T_wc, SIGMA_ACC, CHI2)
     np.testing.assert_array_equal(raw, same)
     assert tracked.all()
     np.testing.assert_array_equal(smoothed[:, :3, :3], raw[:, :3, :3])
@@ -108,8 +109,8 @@ def test_smoothing_is_deterministic(sigma_acc):
     t, truth = _path(200)
     measured = truth + rng.normal(size=truth.shape) * 0.005
     cov = _isotropic(np.full(len(t), 0.005))
-    a = smooth_positions(t, measured, cov, np.ones(len(t), bool), sigma_acc)
-    b = smooth_positions(t, measured.copy(), cov.copy(), np.ones(len(t), bool), sigma_acc)
+    a = smooth_positions(t, measured, cov, np.ones(len(t), bool), sigma_acc, CHI2)
+    b = smooth_positions(t, measured.copy(), cov.copy(), np.ones(len(t), bool), sigma_acc, CHI2)
     assert a.tobytes() == b.tobytes()
 
 
@@ -152,8 +153,8 @@ def test_a_confidently_wrong_frame_counts_less_than_its_covariance_says(monkeypa
     measured = truth.copy()
     measured[60] += [0.04, 0.0, 0.0]
     cov, tracked = _isotropic(sigma), np.ones(len(t), bool)
-    robust = np.linalg.norm(smooth_positions(t, measured, cov, tracked, SIGMA_ACC)[60] - truth[60])
+    robust = np.linalg.norm(smooth_positions(t, measured, cov, tracked, SIGMA_ACC, CHI2)[60] - truth[60])
     monkeypatch.setattr(smoother, "_ROBUST_ROUNDS", 0)
-    plain = np.linalg.norm(smooth_positions(t, measured, cov, tracked, SIGMA_ACC)[60] - truth[60])
+    plain = np.linalg.norm(smooth_positions(t, measured, cov, tracked, SIGMA_ACC, CHI2)[60] - truth[60])
     assert robust < 0.25 * 0.04, robust
     assert robust < 0.6 * plain, (robust, plain)   # measured 4.6 vs 9.9 mm

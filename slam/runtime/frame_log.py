@@ -33,9 +33,11 @@ class FrameLog:
     def last_T_kf_c(self) -> np.ndarray:
         return self._T_kf_c[-1]
 
-    def trajectory(self, kf_T_wc: np.ndarray, sigma_acc: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def trajectory(self, kf_T_wc: np.ndarray, sigma_acc: float = 0.0,
+                   huber_chi2: float = float("inf")) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(timestamps (N,), T_wc (N,4,4), tracked (N,) bool) with the keyframes' poses ``kf_T_wc``;
-        untracked frames hold NaN poses. ``sigma_acc`` > 0: positions smoothed (trajectory_smoother)."""
+        untracked frames hold NaN poses. ``sigma_acc`` > 0: positions smoothed (trajectory_smoother,
+        robust beyond ``huber_chi2``; inf: plain least squares)."""
         stamps = np.array(self._stamps)
         reference = np.array(self._reference_kf, dtype=np.int64)
         tracked = reference >= 0
@@ -45,5 +47,5 @@ class FrameLog:
             poses[tracked] = kf_T_wc[reference[tracked]] @ relative
             if sigma_acc > 0:
                 poses[:, :3, 3] = smooth_positions(stamps, poses[:, :3, 3], np.stack(self._position_cov), tracked,
-                                                   sigma_acc)
+                                                   sigma_acc, huber_chi2)
         return stamps, poses, tracked

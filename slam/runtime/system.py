@@ -180,11 +180,11 @@ class System:
         Each tracked frame's pose is its reference keyframe's optimised pose composed with the
         frame's pose relative to it, the positions smoothed with the motion model of
         ``backend.smoothing_sigma_acc`` (slam/runtime/trajectory_smoother.py) unless ``smoothed`` is False
-        (a live view that asks every frame: one solve costs ~15 ms per 1,000 frames); untracked frames hold
+        (a live view that asks every frame: the smoothing costs ~20 ms per 1,000 frames); untracked frames hold
         NaN poses.
         """
         sigma_acc = self.config.backend.smoothing_sigma_acc if smoothed else 0.0
-        return self.tracking.frames.trajectory(self.mapper.map.kf_T_wc, sigma_acc)
+        return self.tracking.frames.trajectory(self.mapper.map.kf_T_wc, sigma_acc, self.config.tracking.chi2_stereo)
 
     def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         kfs = self.mapper.map.keyframes

@@ -11,11 +11,11 @@ positions minimise
 over each run of consecutive tracked frames (a LOST frame breaks the chain): a linear, sparse least
 squares problem, solved exactly. A well-fixed frame (C_i of a few mm^2) barely moves; a loosely fixed
 one follows its neighbours. A few Huber rounds (iteratively reweighted, at the pose optimisation's own
-3-dof chi-square bound) let a frame that is confidently wrong (a pose people pulled: small C_i, far
-from its neighbours' motion) count less, as a robust kernel does for an outlier observation. Rotations are left as estimated. This is the discrete form of a
-white-noise-on-jerk-free (constant-velocity between samples) motion prior as used by continuous-time
-trajectory estimators; it only uses what the run measured, so it can run at the end of a dataset run,
-never online (``trajectory_online.txt`` keeps the causal estimate).
+3-dof chi-square bound, ``tracking.chi2_stereo``) let a frame that is confidently wrong (a pose people
+pulled: small C_i, far from its neighbours' motion) count less, as a robust kernel does for an outlier
+observation. Rotations are left as estimated. The acceleration term is a discrete zero-mean
+acceleration prior, as continuous-time trajectory estimators use; it needs the frames after a frame,
+so it runs on the final trajectory, never online (``trajectory_online.txt`` keeps the causal estimate).
 """
 from __future__ import annotations
 
@@ -26,22 +26,21 @@ from scipy.sparse.linalg import spsolve
 # A frame without a usable covariance (the first keyframe, whose pose is defined, not measured) is
 # held at its position by this sigma.
 _FIXED_SIGMA_M = 1e-4
-# Robust rounds: Huber at the 95 % chi-square bound of 3 dof (7.815), the pose optimisation's own
-# stereo threshold; a fixed number of rounds keeps the result deterministic.
-_HUBER_K = float(np.sqrt(7.815))
+# Robust rounds after the plain solve; a fixed number keeps the result deterministic.
 _ROBUST_ROUNDS = 4
 
 
 def smooth_positions(stamps: np.ndarray, positions: np.ndarray, covariances: np.ndarray, tracked: np.ndarray,
-                     sigma_acc: float) -> np.ndarray:
+                     sigma_acc: float, huber_chi2: float) -> np.ndarray:
     """Smoothed copy of ``positions`` (N,3); untracked rows and runs shorter than 3 frames unchanged.
 
-    ``covariances`` (N,3,3) of each position (NaN rows: held fixed); ``sigma_acc`` (m/s^2) > 0."""
+    ``covariances`` (N,3,3) of each position (NaN rows: held fixed); ``sigma_acc`` (m/s^2) > 0;
+    ``huber_chi2``: the chi-square (3 dof) beyond which a frame's own term is down-weighted."""
     out = positions.copy()
     for start, stop in _runs(tracked):
         if stop - start >= 3:
             out[start:stop] = _smooth_run(stamps[start:stop], positions[start:stop], covariances[start:stop],
-                                          sigma_acc)
+                                          sigma_acc, float(np.sqrt(huber_chi2)))
     return out
 
 
@@ -51,7 +50,7 @@ def _runs(tracked: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
 
 
-def _smooth_run(t: np.ndarray, m: np.ndarray, cov: np.ndarray, sigma_acc: float) -> np.ndarray:
+def _smooth_run(t: np.ndarray, m: np.ndarray, cov: np.ndarray, sigma_acc: float, huber_k: float) -> np.ndarray:
     n = len(t)
     information = np.empty((n, 3, 3))
     usable = np.isfinite(cov).all(axis=(1, 2))
@@ -69,15 +68,18 @@ def _smooth_run(t: np.ndarray, m: np.ndarray, cov: np.ndarray, sigma_acc: float)
     D = sparse.csr_matrix((vals, (rows, cols)), shape=(n - 2, n))
     A = sparse.kron(D, sparse.identity(3), format="csr")
     AtA = A.T @ A
+    blocks = np.arange(n)
     weights = np.ones(n)
-    for _ in range(_ROBUST_ROUNDS + 1):
-        W = sparse.block_diag(list(information * weights[:, None, None]), format="csr")
+    for round_idx in range(_ROBUST_ROUNDS + 1):
+        W = sparse.bsr_matrix((information * weights[:, None, None], blocks, np.arange(n + 1)), shape=(3 * n, 3 * n))
         x = np.asarray(spsolve((W + AtA).tocsc(), W @ m.reshape(-1))).reshape(n, 3)
+        if round_idx == _ROBUST_ROUNDS:
+            break
         # Huber weights on each frame's own term (IRLS): a frame whose position disagrees with its
         # neighbours' motion by more than its covariance allows (a pose people pulled, confidently
         # wrong) counts less in the next round.
         d = x - m
         r = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", d, information, d), 0.0))
-        weights = np.where(r <= _HUBER_K, 1.0, _HUBER_K / np.maximum(r, 1e-12))
+        weights = np.where(r <= huber_k, 1.0, huber_k / np.maximum(r, 1e-12))
         weights[~usable] = 1.0
     return x
