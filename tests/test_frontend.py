@@ -4,8 +4,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_keyframe
+from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, keyframe_distances, need_keyframe
 from frontend.matching import hamming_pairs, match_brute_force, search_by_projection
 from frontend.orb_extractor import OrbExtractor, features_per_level
 from frontend.tracker import Tracker, TrackingState
@@ -287,6 +288,25 @@ def test_need_keyframe_rules():
     assert not need_keyframe(cfg, evidence(frames_since_keyframe=4, motion_t=0.05, motion_deg=3.0))
     # Default motion (unknown) counts as moved.
     assert need_keyframe(cfg, KeyframeEvidence(5, 200, 200, 300, 0))
+    # Due and moved, but passing an older keyframe (nearer than half the way to the last one): no
+    # keyframe; weak tracking still makes one there.
+    assert not need_keyframe(cfg, evidence(frames_since_keyframe=5, motion_t=0.05, nearest_ratio=0.4))
+    assert need_keyframe(cfg, evidence(frames_since_keyframe=5, motion_t=0.05, nearest_ratio=0.6))
+    assert need_keyframe(cfg, evidence(frames_since_keyframe=5, motion_t=0.05, nearest_ratio=0.4, tracked_landmarks=100))
+    assert need_keyframe(cfg.model_copy(update={"revisit_ratio": 0.0}),
+                         evidence(frames_since_keyframe=5, motion_t=0.05, nearest_ratio=0.0))
+
+
+def test_keyframe_distances_in_units_of_the_motion_thresholds():
+    def pose(x: float, yaw_deg: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix()
+        T[0, 3] = x
+        return T
+
+    keyframes = np.stack([pose(0.0, 0.0), pose(0.1, 0.0), pose(0.0, 10.0), pose(0.01, 1.0)])
+    d = keyframe_distances(keyframes, pose(0.0, 0.0), 0.02, 2.0)
+    np.testing.assert_allclose(d, [0.0, 5.0, 5.0, 0.5], atol=1e-6)   # 10 cm / 2 cm; 10 deg / 2 deg; max(0.5, 0.5)
 
 
 @pytest.mark.parametrize("tracked", [0, 5, 15])

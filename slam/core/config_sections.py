@@ -139,6 +139,11 @@ class KeyframeConfig(ConfigSection):
     close_tracked_min: int = Field(100, ge=0)
     """ORB-SLAM's "need to insert close points": few tracked close points, many untracked ones."""
     close_untracked_min: int = Field(70, ge=0)
+    revisit_ratio: float = Field(0.5, ge=0, le=1)
+    """A keyframe due by max_frames is not made while an older keyframe sharing the tracked landmarks is
+    nearer than this fraction of the distance to the last one (0 = off): the frame then lies between
+    keyframes the map already has, at most half a keyframe spacing from one, so it would add a
+    redundant view (a camera passing its old path every lap would otherwise grow the map per lap)."""
     max_new_landmarks: int = Field(600, ge=1)
     min_new_landmarks: int = Field(100, ge=0)
 

@@ -14,7 +14,7 @@ import numpy as np
 from backend.local_mapping import LocalMapper
 from backend.loop_closing import LoopCloser
 from backend.relocalization import Relocalizer
-from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, need_keyframe
+from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, keyframe_distances, need_keyframe
 from frontend.tracker import LocalMapSource, Tracker, TrackingResult, TrackingState
 from slam.core.camera import PinholeCamera
 from slam.core.config import SlamConfig
@@ -239,7 +239,12 @@ class TrackingLoop:
         ref_count = int(((~lm.bad[ref_ids]) & (lm.n_obs[ref_ids] >= 2)).sum())
         tracked_close, untracked_close = close_point_counts(frame, lm_of_kp, self.camera.close_depth,
                                                             self.config.tracking.dynamic_threshold)
+        kf_cfg, last = self.config.keyframes, self.mapper.map.num_keyframes - 1
+        nearby, _ = self.mapper.map.keyframes_observing(lm_of_kp[lm_of_kp >= 0])
+        nearby = np.union1d(nearby[: self.config.tracking.local_keyframes], [last])   # sorted: the last one is last
+        distance = keyframe_distances(self.mapper.map.kf_T_wc[nearby], T_wc, kf_cfg.min_motion_t, kf_cfg.min_motion_deg)
+        nearest_ratio = float(distance.min() / distance[-1]) if distance[-1] > 0 else 1.0
         evidence = KeyframeEvidence(len(self.frames) - self._last_keyframe_frame, n_tracked, ref_count,
                                     tracked_close, untracked_close,
-                                    *pose_distance(self.mapper.map.kf_T_wc[-1], T_wc))
-        return need_keyframe(self.config.keyframes, evidence)
+                                    *pose_distance(self.mapper.map.kf_T_wc[last], T_wc), nearest_ratio)
+        return need_keyframe(kf_cfg, evidence)
