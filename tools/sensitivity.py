@@ -70,6 +70,8 @@ PARAMETERS = (
               "tau only acts with refine on, off by default)"),
     Parameter("backend.smoothing_sigma_acc", "the final trajectory smoother's acceleration sigma (m/s^2): how far a "
               "loosely tracked frame may leave its neighbours' motion"),
+    Parameter("keyframes.revisit_ratio", "a keyframe due by time is not made while an older keyframe is nearer than "
+              "this fraction of the way to the last one (bounds the map on revisits)"),
 )
 
 
