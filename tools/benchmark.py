@@ -40,11 +40,11 @@ KEYFRAME_WINDOW = 10                   # ... as the median over the keyframes up
 
 def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides: list[str],
                 blackout: str = "") -> dict:
-    from slam.cli import _parse_overrides, resolve_run_config
+    from slam.run.run_config import parse_overrides, resolve_run_config
     from slam.datasets import TumDataset
     from slam.run.pipeline import Pipeline
 
-    config = resolve_run_config(sequence, config_files, _parse_overrides(overrides))
+    config = resolve_run_config(sequence, config_files, parse_overrides(overrides))
     dataset = TumDataset(sequence, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
     if blackout:
         from slam.datasets.faults import Blackout

@@ -113,14 +113,14 @@ def growth_per_1000(rss_mib: Sequence[float], from_fraction: float = 0.5) -> flo
 
 # ------------------------------------------------------------------------------------ the run
 def demo_config(sequence, seed: int, config_files: Sequence[str] = (), overrides: Sequence[str] = ()):
-    """The configuration ``dynslam demo`` builds for ``sequence`` (see ``slam.cli.cmd_demo``)."""
-    from slam.cli import _parse_overrides, resolve_run_config
+    """The configuration ``dynslam demo`` builds for ``sequence`` (see ``slam.cli.commands.cmd_demo``)."""
+    from slam.run.run_config import parse_overrides, resolve_run_config
 
     fx, fy, cx, cy = sequence.intrinsics
     camera = {"camera.name": "synthetic", "camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy,
               "camera.width": sequence.width, "camera.height": sequence.height,
               "camera.distortion": [0.0] * 5, "seed": seed}
-    return resolve_run_config(None, list(config_files), {**camera, **_parse_overrides(list(overrides))})
+    return resolve_run_config(None, list(config_files), {**camera, **parse_overrides(list(overrides))})
 
 
 def run(frames: int = 2000, seed: int = 0, path: str = "orbit", block: int = 1000, output: Optional[Path] = None,

@@ -308,7 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def spec_from_args(args) -> SweepSpec:
-    from slam.cli import _parse_overrides
+    from slam.run.run_config import parse_overrides
 
     spec = load_sweep_file(args.sweep_file) if args.sweep_file else SweepSpec(sequences=[], configs=[])
     if args.sequences:
@@ -317,7 +317,7 @@ def spec_from_args(args) -> SweepSpec:
         spec.configs = [config_from_name(c) for c in args.configs]
         spec.baseline = spec.baseline if spec.baseline in [c.label for c in spec.configs] else None
     spec.presets = args.preset if args.preset is not None else spec.presets
-    spec.overrides.update(_parse_overrides(args.set))
+    spec.overrides.update(parse_overrides(args.set))
     spec.baseline = args.baseline or spec.baseline
     spec.repeats = args.repeats if args.repeats is not None else spec.repeats
     spec.max_frames = args.max_frames if args.max_frames is not None else spec.max_frames

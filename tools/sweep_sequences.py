@@ -73,7 +73,7 @@ def open_hard(spec: str, n_frames: int):
 
 def build_pipeline(job: dict):
     """The Pipeline of one job, configured as ``dynslam run`` would be plus the job's seed."""
-    from slam.cli import resolve_run_config
+    from slam.run.run_config import resolve_run_config
     from slam.datasets import TumDataset
     from slam.run.demo import demo_detector
     from slam.run.pipeline import Pipeline

@@ -1,0 +1,6 @@
+"""``python -m slam.cli`` = ``dynslam``."""
+import sys
+
+from slam.cli import main
+
+sys.exit(main())
