@@ -60,8 +60,7 @@ def test_growth_is_the_slope_of_the_second_half_per_1000_frames():
 def test_rss_readers_report_this_process(tmp_path):
     if sys.platform.startswith("linux"):
         assert memory.current_rss_mib() > 1.0
-        # the kernel's high-water mark lags the live count a little (see peak_rss_mib), never by half
-        assert memory.peak_rss_mib() >= memory.current_rss_mib() * 0.5
+        assert memory.peak_rss_mib() >= memory.current_rss_mib() * 0.99
     status = tmp_path / "status"
     status.write_text("Name:\tpython\nVmPeak:\t 2048 kB\nVmRSS:\t  51200 kB\n")
     assert memory.current_rss_mib(status) == pytest.approx(50.0)
@@ -79,8 +78,10 @@ def test_short_run_reports_every_field(tmp_path):
     assert report["ate_rmse_m"] is not None and report["ate_rmse_m"] < 0.05
     assert len(report["rss_every_frame_mib"]) == frames
     if sys.platform.startswith("linux"):
-        assert 0 < report["rss_start_mib"] <= report["rss_peak_frames_mib"] <= report["peak_rss_mib"]
-        assert report["peak_rss_mib"] >= memory.peak_rss_mib() * 0.99   # the kernel's own mark is in it
+        # No order between the start and the run: in a test process the RSS at the start holds what earlier
+        # tests allocated and the run may see freed (CI: 681.7 MiB at the start, 639.7 MiB peak during it).
+        assert report["rss_start_mib"] > 0
+        assert 0 < report["rss_peak_frames_mib"] <= report["peak_rss_mib"] * 1.01
         assert min(report["rss_every_frame_mib"]) > 0
     assert report["wall_ms_per_frame"] > 0 and report["mean_frame_ms"] > 0
     assert np.isfinite(report["growth_mib_per_1000"])
