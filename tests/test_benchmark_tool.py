@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from conftest import load_tool
 
@@ -25,3 +26,36 @@ def test_speed_table_has_the_ratio_to_the_peer_and_dashes_for_what_is_missing():
     assert lines[2] == "| seq | 30.0 | 20.0 | 50.0 | 40.0 | – | – | – | 12.0 | 2.5x |"
     assert lines[3] == "| alone | 10.0 | 5.0 | 9.0 | – | – | – | – | – | – |"
     assert len(lines) == 4, "the peer is a column, not a row"
+
+
+def _long_report(first_ms: float, last_ms: float) -> dict:
+    blocks = [{"first": 1, "last": 1000, "mean_ms": first_ms, "keyframes": 200, "keyframes_added": 200,
+               "rss_end_mib": 350.0},
+              {"first": 4001, "last": 5000, "mean_ms": last_ms, "keyframes": 399, "keyframes_added": 1,
+               "rss_end_mib": 448.0}]
+    return {"sequence": "synthetic_orbit_seed0", "frames": 5000, "tracked": 5000, "ate_rmse_m": 0.0042,
+            "blocks": blocks, "wall_ms_per_frame": 83.5, "peak_rss_mib": 630.0, "rss_peak_frames_mib": 455.0,
+            "growth_mib_per_1000": 1.2}
+
+
+def test_long_run_table_compares_the_first_and_last_block(capsys):
+    text = benchmark.long_run_table(_long_report(66.2, 45.4))
+    assert "| 1–1000 | 66.2 | 200 (200) | 350 |" in text and "| 4001–5000 | 45.4 | 399 (1) | 448 |" in text
+    assert "last / first: **0.69** (target ≤ 1.25)" in text and "peak RSS 630 MiB" in text
+    assert benchmark._check_targets([], _long_report(66.2, 45.4)) == 0
+    assert benchmark._check_targets([], _long_report(56.9, 107.0)) == 1     # the 1.88 of before
+    assert "long run: last 1,000 frames 107.0 ms > 1.25 x the first 56.9 ms" in capsys.readouterr().err
+
+
+def test_long_run_needs_two_blocks(capsys):
+    with pytest.raises(SystemExit):
+        benchmark.main(["--long-run", "1500"])
+    assert "--long-run needs at least 2000 frames" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_long_run_runs_the_memory_tool_in_its_own_process(tmp_path):
+    report = benchmark.run_long(40, tmp_path, block=15)
+    assert report["frames"] == 40 and [(b["first"], b["last"]) for b in report["blocks"]] == [(1, 15), (16, 30), (31, 40)]
+    assert (tmp_path / "long_run.json").is_file()
+    assert "last / first" in benchmark.long_run_table(report)

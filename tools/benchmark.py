@@ -13,7 +13,10 @@ benchmark.json):
   and p95, back-end milliseconds per keyframe around the 50th/100th/200th/500th keyframe (does the
   cost grow with the map?), and the stock ORB-SLAM3 peer's tracking median in the same command with
   the ratio of dynslam's whole-run time to it;
-- accuracy and modules: ATE RMSE, median ms per frame per module, loops and relocalization.
+- accuracy and modules: ATE RMSE, median ms per frame per module, loops and relocalization;
+- with ``--long-run N`` (issue 10 asks N >= 5,000): ``tools/memory.py`` on N frames of the generated orbit,
+  which returns to its start pose every 1,885 frames, in its own process: mean per-frame step over the
+  first and the last 1,000 frames and their ratio (target <= 1.25), keyframes, peak memory.
 Targets are reported, not asserted, so a slow machine gives numbers rather than a failure;
 ``--check`` turns the targets into an exit code. Run one benchmark at a time (2 cores).
 """
@@ -33,7 +36,8 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 DEFAULT_SEQUENCES = [SHARED / "data" / "rgbd_dataset_freiburg1_rpy_first400"]
 MODULES = ("extract", "dynamic", "tracking", "mapping", "backend", "total")
-TARGETS = {"ate_rmse_m": 0.030, "median_total_ms": 60.0}
+TARGETS = {"ate_rmse_m": 0.030, "median_total_ms": 60.0, "long_run_ratio": 1.25}
+LONG_RUN_BLOCK = 1000   # frames per block of the long run: its first and last are compared
 KEYFRAME_MARKS = (50, 100, 200, 500)   # back-end cost reported around these keyframe counts
 KEYFRAME_WINDOW = 10                   # ... as the median over the keyframes up to the mark
 
@@ -161,6 +165,38 @@ def aggregate(runs: list[dict]) -> dict:
     return out
 
 
+def run_long(frames: int, output: Path, block: int = LONG_RUN_BLOCK) -> dict:
+    """``tools/memory.py`` on ``frames`` generated frames in its own process (so its peak memory is the run's
+    alone); returns its JSON report."""
+    report_path = output / "long_run.json"
+    cmd = [sys.executable, str(REPO / "tools" / "memory.py"), "--frames", str(frames), "--block", str(block),
+           "--json", str(report_path), "--quiet"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+    if proc.returncode != 0:
+        raise RuntimeError(f"long run failed ({' '.join(cmd)}):\n{proc.stderr[-2000:]}")
+    return json.loads(report_path.read_text())
+
+
+def long_run_table(report: dict) -> str:
+    """First and last block of a long run, their ratio, keyframes and memory, as Markdown."""
+    first, last = report["blocks"][0], report["blocks"][-1]
+    ratio = last["mean_ms"] / first["mean_ms"] if first["mean_ms"] > 0 else float("nan")
+    ate = f", ATE {report['ate_rmse_m']:.4f} m" if report.get("ate_rmse_m") is not None else ""
+    return "\n".join([
+        f"long run: {report['sequence']}, {report['frames']} frames ({report['tracked']} tracked){ate}",
+        "",
+        "| frames | mean ms/frame | keyframes at the end (added) | RSS at the end (MiB) |",
+        "|---|---|---|---|",
+        *(f"| {b['first']}–{b['last']} | {b['mean_ms']:.1f} | {b['keyframes']} ({b['keyframes_added']}) "
+          f"| {b['rss_end_mib']:.0f} |" for b in (first, last)),
+        "",
+        f"last / first: **{ratio:.2f}** (target ≤ {TARGETS['long_run_ratio']}); whole run "
+        f"{report['wall_ms_per_frame']:.1f} ms/frame; peak RSS {report['peak_rss_mib']:.0f} MiB (ru_maxrss), "
+        f"{report['rss_peak_frames_mib']:.0f} MiB while tracking; RSS growth "
+        f"{report['growth_mib_per_1000']:.1f} MiB per 1,000 frames (second half)",
+    ])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sequences", nargs="*", type=Path, default=DEFAULT_SEQUENCES)
@@ -172,7 +208,12 @@ def main(argv=None) -> int:
     parser.add_argument("--check", action="store_true", help="exit 1 if a target is missed")
     parser.add_argument("--blackout", metavar="START:COUNT", default="",
                         help="blank COUNT frames from START (times relocalization)")
+    parser.add_argument("--long-run", type=int, default=0, metavar="FRAMES",
+                        help="also run FRAMES generated frames (>= 2,000; issue 10 asks 5,000) and compare the "
+                             "first and last 1,000 frames' cost (~7 min for 5,000)")
     args = parser.parse_args(argv)
+    if args.long_run and args.long_run < 2 * LONG_RUN_BLOCK:
+        parser.error(f"--long-run needs at least {2 * LONG_RUN_BLOCK} frames (a first and a last block)")
     missing = [s for s in args.sequences if not s.is_dir()]
     if missing:
         print(f"benchmark: sequence folder not found: {', '.join(map(str, missing))}", file=sys.stderr)
@@ -187,18 +228,26 @@ def main(argv=None) -> int:
             with tempfile.TemporaryDirectory() as tmp:
                 rows.append(run_peer(args.peer, seq, Path(tmp)))
     table = speed_table(rows) + "\n\n" + markdown_table(rows)
+    long_report = None
+    if args.long_run:
+        long_report = run_long(args.long_run, args.output)
+        table += "\n\n" + long_run_table(long_report)
     stamp = time.strftime("%Y-%m-%d %H:%M")
     (args.output / "benchmark.md").write_text(f"Benchmark {stamp}\n\n{table}\n")
     (args.output / "benchmark.json").write_text(json.dumps(rows, indent=2) + "\n")
     print(table)
-    return _check_targets(rows) if args.check else 0
+    return _check_targets(rows, long_report) if args.check else 0
 
 
-def _check_targets(rows: list[dict]) -> int:
+def _check_targets(rows: list[dict], long_report: dict | None = None) -> int:
     failed = [f"{r['sequence']}: ATE {r['ate_rmse_m']:.4f} m > {TARGETS['ate_rmse_m']} m" for r in rows
               if r["system"] == "dynslam" and "rpy" in r["sequence"] and r["ate_rmse_m"] > TARGETS["ate_rmse_m"]]
     failed += [f"{r['sequence']}: median {r['median_ms']['total']:.1f} ms > {TARGETS['median_total_ms']} ms"
                for r in rows if r["system"] == "dynslam" and r["median_ms"]["total"] > TARGETS["median_total_ms"]]
+    if long_report is not None:
+        first, last = long_report["blocks"][0]["mean_ms"], long_report["blocks"][-1]["mean_ms"]
+        if last > TARGETS["long_run_ratio"] * first:
+            failed.append(f"long run: last 1,000 frames {last:.1f} ms > {TARGETS['long_run_ratio']} x the first {first:.1f} ms")
     for line in failed:
         print(f"target missed: {line}", file=sys.stderr)
     return 1 if failed else 0
