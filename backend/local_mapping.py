@@ -238,7 +238,10 @@ class LocalMapper:
         neighbours = [self.map.covisible_keyframes(k, self.cfg.covisibility_min_shared, n_covisible) for k in kfs[:3]]
         return np.unique(np.concatenate([kfs] + neighbours))
 
-    def reference_keyframe(self, landmark_ids: np.ndarray) -> int:
-        """The keyframe sharing most of the given landmarks (the latest one if none)."""
-        kfs, _ = self.map.keyframes_observing(landmark_ids)
-        return int(kfs[0]) if len(kfs) else self.map.num_keyframes - 1
+    def keyframes_sharing(self, landmark_ids: np.ndarray) -> np.ndarray:
+        """Ids of the keyframes that observe any of the given landmarks, the one sharing most first."""
+        return self.map.keyframes_observing(landmark_ids)[0]
+
+    def reference_keyframe(self, sharing: np.ndarray) -> int:
+        """The first of ``keyframes_sharing``'s answer (the latest keyframe if it is empty)."""
+        return int(sharing[0]) if len(sharing) else self.map.num_keyframes - 1

@@ -171,8 +171,9 @@ class TrackingLoop:
         with self.timer.measure("mapping"):
             self.mapper.record_tracking(result.visible_landmarks, tracked_ids)
             self.mapper.record_dynamic_evidence(result.dynamic_landmarks, result.dynamic_probs)
-            self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
-            is_keyframe = self._decide_keyframe(frame, T_wc, result.landmark_of_keypoint, len(tracked_ids))
+            sharing = self.mapper.keyframes_sharing(tracked_ids)
+            self._reference_kf = self.mapper.reference_keyframe(sharing)
+            is_keyframe = self._decide_keyframe(frame, T_wc, result.landmark_of_keypoint, len(tracked_ids), sharing)
         if is_keyframe:
             T_wc = self._add_keyframe(frame, T_wc, result.landmark_of_keypoint)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
@@ -225,13 +226,16 @@ class TrackingLoop:
             return FrameOutput(frame.index, frame.timestamp, result.state, None, False, len(frame), 0)
         T_wc = invert(result.T_cw)
         tracked_ids = result.landmark_of_keypoint[result.landmark_of_keypoint >= 0]
-        self._reference_kf = self.mapper.reference_keyframe(tracked_ids)
+        self._reference_kf = self.mapper.reference_keyframe(self.mapper.keyframes_sharing(tracked_ids))
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
         self.frames.add(frame.timestamp, self._reference_kf, T_kf_c, result.position_cov_w)
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, False, len(frame), len(tracked_ids),
                            float(result.pose_sigma_t))
 
-    def _decide_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray, n_tracked: int) -> bool:
+    def _decide_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, lm_of_kp: np.ndarray, n_tracked: int,
+                         sharing: np.ndarray) -> bool:
+        """ORB-SLAM's NeedNewKeyFrame on this frame's evidence; ``sharing``: the keyframes observing its
+        tracked landmarks, most shared first (the older keyframes it may be passing)."""
         ref = self.mapper.map.keyframes[self._reference_kf]
         ref_ids = ref.landmark_of_keypoint[ref.landmark_of_keypoint >= 0]
         lm = self.mapper.map.landmarks
@@ -240,8 +244,7 @@ class TrackingLoop:
         tracked_close, untracked_close = close_point_counts(frame, lm_of_kp, self.camera.close_depth,
                                                             self.config.tracking.dynamic_threshold)
         kf_cfg, last = self.config.keyframes, self.mapper.map.num_keyframes - 1
-        nearby, _ = self.mapper.map.keyframes_observing(lm_of_kp[lm_of_kp >= 0])
-        nearby = np.union1d(nearby[: self.config.tracking.local_keyframes], [last])   # sorted: the last one is last
+        nearby = np.union1d(sharing[: self.config.tracking.local_keyframes], [last])   # sorted: the last one is last
         distance = keyframe_distances(self.mapper.map.kf_T_wc[nearby], T_wc, kf_cfg.min_motion_t, kf_cfg.min_motion_deg)
         nearest_ratio = float(distance.min() / distance[-1]) if distance[-1] > 0 else 1.0
         evidence = KeyframeEvidence(len(self.frames) - self._last_keyframe_frame, n_tracked, ref_count,
