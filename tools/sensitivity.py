@@ -72,6 +72,8 @@ PARAMETERS = (
               "loosely tracked frame may leave its neighbours' motion"),
     Parameter("keyframes.revisit_ratio", "a keyframe due by time is not made while an older keyframe is nearer than "
               "this fraction of the way to the last one (bounds the map on revisits)"),
+    Parameter("dynamic.still_max_move_m", "how far (m) a person's torso may move in still_window_s and still "
+              "stand still (then only motion evidence counts on them; 0.15 m in 0.5 s: 0.3 m/s)"),
 )
 
 

@@ -78,6 +78,9 @@ class DynamicMethod(Protocol):
     name: str
     needs_detector: bool
     prepares: bool    # whether ``prepare`` does work worth a thread (else the rejector calls it in line)
+    # Whether the method measures motion itself (cpr, flow_epipolar) rather than finding a class that
+    # usually moves (box_depth, depth_sdf): only motion evidence counts on a person standing still.
+    measures_motion: bool
 
     def prepare(self, ctx: DynamicContext) -> None:
         """The part of the frame's work that needs only the images and the poses (``ctx.frame`` and

@@ -172,6 +172,7 @@ class BoxDepthMethod:
     name = "box_depth"
     needs_detector = True
     prepares = False
+    measures_motion = False
 
     def __init__(self, cfg: BoxDepthConfig, classes: ClassGroups):
         self.cfg = cfg

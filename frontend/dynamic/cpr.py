@@ -231,6 +231,7 @@ class CprMethod:
     name = "cpr"
     needs_detector = False
     prepares = True
+    measures_motion = True
 
     def __init__(self, cfg: Optional[CprConfig] = None):
         self.cfg = cfg or CprConfig()

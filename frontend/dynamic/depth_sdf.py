@@ -114,6 +114,7 @@ class DepthSdfMethod:
     name = "depth_sdf"
     needs_detector = True
     prepares = False
+    measures_motion = False
 
     def __init__(self, cfg: DepthSdfConfig, classes: ClassGroups):
         self.cfg = cfg

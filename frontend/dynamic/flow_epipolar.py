@@ -161,6 +161,7 @@ class FlowEpipolarMethod:
     name = "flow_epipolar"
     needs_detector = True
     prepares = False
+    measures_motion = True
 
     def __init__(self, cfg: FlowEpipolarConfig, classes: ClassGroups):
         self.cfg = cfg

@@ -19,6 +19,7 @@ from frontend.dynamic import DynamicStats
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.box_memory import BoxMemory
 from frontend.dynamic.fusion import fuse
+from frontend.dynamic.region_motion import RegionMotion, box_centre
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import DynamicConfig
 from slam.core.frame import FeatureFrame
@@ -64,6 +65,10 @@ class DynamicRejector:
         self._prepare_thread: Optional[ThreadPoolExecutor] = None
         self._begun: Optional[_BegunFrame] = None
         self._box_memory = BoxMemory(cfg.detector.hold_frames, set(cfg.classes.dynamic), camera.width, camera.height)
+        self._region_motion = RegionMotion(cfg.still_window_s, cfg.still_max_move_m)
+        self._motion_methods = [k for k, m in enumerate(methods) if m.measures_motion]
+        self._still_region: Optional[np.ndarray] = None
+        self.people_still = 0       # people standing still in the last frame (region_motion)
 
     def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
                     predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> None:
@@ -127,11 +132,19 @@ class DynamicRejector:
         for name, out in outputs.items():
             self.stats.add(name, out.flagged)
         fused = fuse([o.prob for o in outputs.values()], self._weights, self.cfg.fusion, len(frame))
+        with self.timer.measure("dynamic.standing_people"):
+            self._still_region = self._standing_people(ctx)
+        if self._still_region is not None:
+            still = keypoints_in_mask(self._still_region, frame.uv_raw)
+            motion = self._motion_only([o.prob for o in outputs.values()], len(frame))
+            fused[still] = motion[still]
         prior_mask = self._box_prior_mask(ctx)
         if prior_mask is not None:
             fused = np.maximum(fused, keypoints_in_mask(prior_mask, frame.uv_raw))
         self.stats.frames += 1
         self.stats.add("fused", int(np.sum(fused >= 0.5)))
+        if self.detector is not None and self._region_motion.enabled:
+            self.stats.add("standing_people", self.people_still)   # a column of dynamic.csv
         self._last = (ctx, outputs)
         self.last_outputs, self.last_fused, self.last_keypoints = outputs, fused, frame.uv_raw
         self._mask_inputs = (outputs, ctx.gray.shape, prior_mask)
@@ -147,10 +160,47 @@ class DynamicRejector:
         if self._fused_mask is None and self._mask_inputs is not None:
             outputs, shape, prior = self._mask_inputs
             mask = fused_pixel_mask(outputs, self.cfg.fusion, self._weights, shape)
+            if mask is not None and self._still_region is not None:
+                motion_outputs = {name: out for k, (name, out) in enumerate(outputs.items())
+                                  if k in self._motion_methods}
+                motion = fused_pixel_mask(motion_outputs, self.cfg.fusion,
+                                          [self._weights[k] for k in self._motion_methods], shape)
+                mask[self._still_region] = 0.0 if motion is None else motion[self._still_region]
             if prior is not None:
                 mask = prior if mask is None else np.maximum(mask, prior)
             self._fused_mask = mask
         return self._fused_mask
+
+    def _motion_only(self, probs: list[np.ndarray], n: int) -> np.ndarray:
+        """The fused probability of the motion-measuring methods alone (zeros when none is enabled)."""
+        keep = self._motion_methods
+        mode = "max" if self.cfg.fusion == "single" else self.cfg.fusion
+        return fuse([probs[k] for k in keep], [self._weights[k] for k in keep], mode, n)
+
+    def _standing_people(self, ctx: DynamicContext) -> Optional[np.ndarray]:
+        """HxW bool: the boxes of the people who stand still (region_motion), less every moving person's
+        box (a walker in front of them keeps all the evidence); None when nobody stands still."""
+        self.people_still = 0
+        if not self._region_motion.enabled or not ctx.detections:
+            self._region_motion.classify([], ctx.predicted_T_cw, ctx.frame.timestamp)
+            return None
+        h, w = ctx.gray.shape
+        boxes = [(max(int(d.x0), 0), max(int(d.y0), 0), min(int(np.ceil(d.x1)), w), min(int(np.ceil(d.y1)), h))
+                 for d in ctx.detections if d.class_id in self.cfg.classes.dynamic]
+        boxes = [b for b in boxes if b[2] > b[0] and b[3] > b[1]]
+        centres = [box_centre(b, ctx.depth, self.camera) for b in boxes]
+        still = self._region_motion.classify(centres, ctx.predicted_T_cw, ctx.frame.timestamp)
+        if not still.any():
+            return None
+        region = np.zeros((h, w), bool)
+        for (x0, y0, x1, y1), k_still in zip(boxes, still):
+            if k_still:
+                region[y0:y1, x0:x1] = True
+        for (x0, y0, x1, y1), k_still in zip(boxes, still):
+            if not k_still:
+                region[y0:y1, x0:x1] = False
+        self.people_still = int(still.sum())
+        return region
 
     def _box_prior_mask(self, ctx: DynamicContext) -> Optional[np.ndarray]:
         """``box_prior`` inside every dilated dynamic-class box (None when off or no detections)."""
@@ -171,6 +221,7 @@ class DynamicRejector:
         if self._last is None:
             return
         ctx, outputs = self._last
+        self._region_motion.commit(T_cw)
         for method in self.methods:
             with self.timer.measure(f"dynamic.{method.name}"):
                 method.end_frame(ctx, outputs[method.name], T_cw, is_keyframe)

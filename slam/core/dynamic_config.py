@@ -218,6 +218,12 @@ class DynamicConfig(ConfigSection):
     landmark-admission threshold (backend.landmark_max_dynamic_prob), so nothing inside a person box
     enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 = off."""
     box_prior_dilate_px: int = Field(10, ge=0)
+    still_window_s: float = Field(0.5, ge=0)
+    """A person whose torso stayed within ``still_max_move_m`` in the world for this long stands still:
+    in their box only cpr and flow_epipolar (motion evidence) count, above the box prior
+    (frontend/dynamic/region_motion.py). 0 = off: every person counts as moving."""
+    still_max_move_m: float = Field(0.15, gt=0)
+    """0.15 m in 0.5 s is 0.3 m/s: half the slowest walking pace, 5x a standing person's sway."""
     dump_masks_dir: str = ""
     """Optional folder for PNG mask overlays (empty = off)."""
 

@@ -1,0 +1,137 @@
+"""Which people stand still in the world (issue 11, item 3; not in any of the four papers).
+
+box_depth and depth_sdf segment people, not motion: they flag a person who stands still as surely as
+one who walks. cpr and flow_epipolar measure motion. Each person box's 3-D centre (the median of the
+middle third of the box: the torso) is followed in world coordinates from frame to frame, and a person
+whose centre stayed within ``max_move_m`` of every position it had over the last ``window_s`` seconds
+stands still. In a standing person's box the rejector then counts only the motion-measuring methods,
+with the person-box prior as a floor (``DynamicRejector``): the person is not a moving surface, so
+tracking may use them at that moment and the keyframe masks leave them out, while the prior (above the
+map's admission bar) still keeps every feature in their box out of the map -- a person who starts
+walking cannot drag a landmark along. Algorithm 3 of the box + depth paper (Fang et al.) reuses single
+features that moved like the static scene between two frames; this is the same idea for a whole person
+over half a second.
+
+Why the defaults: ``window_s`` 0.5 s and ``max_move_m`` 0.15 m mean an average speed of 0.3 m/s, half
+the slowest deliberate walking pace (~0.5-0.6 m/s; typical 1.2-1.4 m/s), while the sway of a standing
+person (1-3 cm) and the jitter of a torso's median depth stay well below 0.15 m. A person who starts
+walking at 1 m/s counts as moving again after ~0.15 s (5 frames at 30 Hz).
+
+The safe side everywhere: a person is *moving* unless shown still -- a new box, one not matched to last
+frame's (the detector missed them, a second person stepped in front), a frame without a predicted pose,
+or after a lost frame. Everything is a function of the frames and poses only: deterministic.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from slam.core.camera import PinholeCamera
+
+_MATCH_M = 0.5
+"""A person continues last frame's track whose centre is nearest and less than this far (world, m):
+half a person's shoulder width plus a frame of fast walking (~5 cm), so two people side by side keep
+their own tracks."""
+_PIXEL_STEP = 2
+"""Every 2nd pixel in each direction enters the median (a 200 x 400 px person: ~2 000 pixels)."""
+
+
+@dataclass
+class _Track:
+    times: list[float] = field(default_factory=list)
+    centres: list[np.ndarray] = field(default_factory=list)   # world coordinates
+
+
+def box_centre(box: tuple[int, int, int, int], depth: np.ndarray, camera: PinholeCamera) -> Optional[np.ndarray]:
+    """Median 3-D point (camera frame) of the middle third (width and height) of a person's box (x0, y0,
+    x1, y1 pixels): the torso, which a person's box centres on whatever their pose (box_depth seeds its
+    fill there too); the median ignores the background seen between arm and body. None without depth."""
+    x0, y0, x1, y1 = box
+    w, h = x1 - x0, y1 - y0
+    rows = np.arange(y0 + h // 3, y1 - h // 3, _PIXEL_STEP)
+    cols = np.arange(x0 + w // 3, x1 - w // 3, _PIXEL_STEP)
+    if not len(rows) or not len(cols):
+        return None
+    z = depth[np.ix_(rows, cols)].astype(float)
+    r, c = np.nonzero(z > 0)
+    if not len(r):
+        return None
+    z, v, u = z[r, c], rows[r].astype(float), cols[c].astype(float)
+    xyz = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], axis=1)
+    return np.median(xyz, axis=0)
+
+
+class RegionMotion:
+    """Follows people's centres in the world and says who stands still (see the module doc)."""
+
+    def __init__(self, window_s: float, max_move_m: float):
+        self.window_s = float(window_s)
+        self.max_move_m = float(max_move_m)
+        self._tracks: list[_Track] = []
+        # The current frame's people (camera-frame centres) and the track each continues, until
+        # ``commit`` places them in the world with the frame's tracked pose.
+        self._pending: list[tuple[np.ndarray, Optional[_Track]]] = []
+        self._time = 0.0
+
+    @property
+    def enabled(self) -> bool:
+        return self.window_s > 0
+
+    def reset(self) -> None:
+        self._tracks, self._pending = [], []
+
+    def classify(self, centres: list[Optional[np.ndarray]], predicted_T_cw: Optional[np.ndarray],
+                 timestamp: float) -> np.ndarray:
+        """Per person (camera-frame centre, None without depth): True for those who stand still."""
+        still = np.zeros(len(centres), bool)
+        self._time, self._pending = timestamp, []
+        if not self.enabled:
+            return still
+        world = None if predicted_T_cw is None else _to_world(predicted_T_cw)
+        free = list(self._tracks)
+        for k in np.argsort([np.inf if c is None else float(np.linalg.norm(c)) for c in centres], kind="stable"):
+            centre = centres[k]
+            if centre is None:
+                continue
+            track = None
+            if world is not None and free:
+                w = world(centre)
+                dist = [float(np.linalg.norm(t.centres[-1] - w)) for t in free]
+                j = int(np.argmin(dist))
+                if dist[j] < _MATCH_M:
+                    track = free.pop(j)
+                    still[k] = self._stands_still(track, w, timestamp)
+            self._pending.append((centre, track))
+        return still
+
+    def commit(self, T_cw: Optional[np.ndarray]) -> None:
+        """After tracking: the frame's people join their tracks at the tracked pose; without a pose
+        every track ends (no world position to compare with)."""
+        pending, self._pending = self._pending, []
+        if T_cw is None:
+            self._tracks = []
+            return
+        world, tracks = _to_world(T_cw), []
+        for centre, track in pending:
+            track = track or _Track()
+            track.times.append(self._time)
+            track.centres.append(world(centre))
+            # Keep what the window needs: the newest entry at least window_s old and everything after it.
+            old = [i for i, t in enumerate(track.times) if t <= self._time - self.window_s]
+            if old:
+                del track.times[:old[-1]], track.centres[:old[-1]]
+            tracks.append(track)
+        self._tracks = tracks
+
+    def _stands_still(self, track: _Track, centre_w: np.ndarray, now: float) -> bool:
+        if not track.times or track.times[0] > now - self.window_s:
+            return False                                  # not followed for a whole window yet
+        moved = np.linalg.norm(np.asarray(track.centres) - centre_w, axis=1)
+        return bool(np.max(moved) < self.max_move_m)
+
+
+def _to_world(T_cw: np.ndarray):
+    R, t = T_cw[:3, :3], T_cw[:3, 3]
+    return lambda p_c: R.T @ (p_c - t)

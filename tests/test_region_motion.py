@@ -1,0 +1,99 @@
+"""Who stands still (frontend/dynamic/region_motion.py): a person's torso followed in world coordinates."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from frontend.dynamic.region_motion import RegionMotion, box_centre
+from slam.core.camera import PinholeCamera
+
+FPS = 30.0
+CAMERA = PinholeCamera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
+
+
+def _T_cw(x: float) -> np.ndarray:
+    """A camera at (x, 0, 0) looking along +z (world -> camera)."""
+    T = np.eye(4)
+    T[0, 3] = -x
+    return T
+
+
+def _run(world_positions: list[np.ndarray], camera_x: list[float], motion: RegionMotion) -> list[bool]:
+    """Feed one person per frame (world position seen from a moving camera); the still flag per frame."""
+    flags = []
+    for k, (p_w, x) in enumerate(zip(world_positions, camera_x)):
+        T = _T_cw(x)
+        centre_c = T[:3, :3] @ p_w + T[:3, 3]
+        flags.append(bool(motion.classify([centre_c], T, k / FPS)[0]))
+        motion.commit(T)
+    return flags
+
+
+def test_a_person_standing_still_is_still_once_followed_for_the_window_while_the_camera_moves():
+    n = 40
+    camera_x = list(np.linspace(0.0, 0.8, n))            # the camera moves 0.6 m/s: the image position changes
+    person = [np.array([0.5, 0.0, 2.0])] * n
+    flags = _run(person, camera_x, RegionMotion(0.5, 0.15))
+    window_frames = int(np.ceil(0.5 * FPS))
+    assert not any(flags[:window_frames])                # not followed long enough yet: moving (the safe side)
+    assert all(flags[window_frames + 1:])
+
+
+def test_sway_stays_still_and_walking_never_is():
+    n = 60
+    rng = np.random.default_rng(0)
+    sway = [np.array([0.5, 0.0, 2.0]) + rng.normal(0, 0.02, 3) for _ in range(n)]   # 2 cm jitter per axis
+    assert all(_run(sway, [0.0] * n, RegionMotion(0.5, 0.15))[20:])
+    slow_walk = [np.array([0.5 + 0.5 * k / FPS, 0.0, 2.0]) for k in range(n)]      # 0.5 m/s
+    assert not any(_run(slow_walk, [0.0] * n, RegionMotion(0.5, 0.15)))
+
+
+def test_a_person_who_starts_walking_is_moving_again_within_a_few_frames():
+    n, start = 60, 30
+    path = [np.array([0.5 + max(k - start, 0) * 1.0 / FPS, 0.0, 2.0]) for k in range(n)]   # then 1 m/s
+    flags = _run(path, [0.0] * n, RegionMotion(0.5, 0.15))
+    assert flags[start - 1]
+    first_moving = start + flags[start:].index(False)
+    assert first_moving - start <= 5                      # 0.15 m at 1 m/s: ~4.5 frames
+    assert not any(flags[first_moving:])
+
+
+def test_a_lost_frame_or_a_missing_prediction_forgets_who_stood_still():
+    motion = RegionMotion(0.5, 0.15)
+    person = [np.array([0.0, 0.0, 2.0])] * 30
+    assert _run(person, [0.0] * 30, motion)[-1]
+    centre = person[0]
+    assert not motion.classify([centre], None, 1.0)[0]  # no predicted pose: nothing to compare in the world
+    motion.commit(None)                                  # lost: the tracks end
+    assert not motion.classify([centre], np.eye(4), 1.05)[0]
+
+
+def test_two_people_keep_their_own_tracks_and_a_new_one_starts_as_moving():
+    motion = RegionMotion(0.5, 0.15)
+    standing = np.array([-0.6, 0.0, 2.0])
+    for k in range(30):
+        walker = np.array([0.6, 0.0, 2.0 + k / FPS])   # walking away at 1 m/s beside them
+        still = motion.classify([walker, standing], np.eye(4), k / FPS)
+        motion.commit(np.eye(4))
+    assert still.tolist() == [False, True]
+    newcomer = np.array([0.0, 0.0, 3.0])
+    assert motion.classify([standing, newcomer], np.eye(4), 1.0).tolist() == [True, False]
+
+
+def test_off_and_without_depth_nobody_is_still():
+    off = RegionMotion(0.0, 0.15)
+    assert not off.enabled
+    assert not any(_run([np.zeros(3)] * 30, [0.0] * 30, off))
+    on = RegionMotion(0.5, 0.15)
+    assert on.classify([None], np.eye(4), 0.0).tolist() == [False]
+
+
+def test_box_centre_is_the_torso_not_the_background_seen_beside_it():
+    depth = np.full((480, 640), 4.0, np.float32)
+    depth[100:400, 280:360] = 2.0                        # the body: the middle third of a wider box
+    depth[200:220, 300:310] = 0.0                        # a hole without depth is skipped
+    centre = box_centre((220, 100, 420, 400), depth, CAMERA)
+    assert centre[2] == pytest.approx(2.0)
+    assert centre[0] == pytest.approx((320 - CAMERA.cx) * 2.0 / CAMERA.fx, abs=0.01)
+    assert box_centre((5, 5, 5, 9), depth, CAMERA) is None                 # an empty box
+    assert box_centre((220, 100, 420, 400), np.zeros_like(depth), CAMERA) is None
