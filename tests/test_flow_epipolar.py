@@ -293,5 +293,8 @@ def test_empty_frames_and_missing_detections():
     inside = patch_box().contains(ctx.frame.uv_raw)
     assert np.all(out.prob[inside] == 1.0) and np.all(out.prob[~inside] < 0.5)
     out = step(m, make_ctx(render(2 * CAMERA_STEP), 2, None))   # no detector output at all
-    assert out.info["boxes"] == 0 and out.info["tracked"] == 0
+    # Without boxes the points are still tracked: their epipolar test is the rejector's detector-free
+    # evidence (region_motion.confirmed_regions); the method's own output has no box to flag.
+    assert out.info["boxes"] == 0 and out.info["tracked"] > 0
+    assert out.tracks.shape == (out.info["tracked"], 2) and out.track_moving.shape == (out.info["tracked"],)
     assert m.name == "flow_epipolar" and m.needs_detector

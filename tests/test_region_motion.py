@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frontend.dynamic.region_motion import RegionMotion, box_centre
+from frontend.dynamic.region_motion import RegionMotion, box_centre, confirmed_regions
 from slam.core.camera import PinholeCamera
 
 FPS = 30.0
@@ -97,3 +97,60 @@ def test_box_centre_is_the_torso_not_the_background_seen_beside_it():
     assert centre[0] == pytest.approx((320 - CAMERA.cx) * 2.0 / CAMERA.fx, abs=0.01)
     assert box_centre((5, 5, 5, 9), depth, CAMERA) is None                 # an empty box
     assert box_centre((220, 100, 420, 400), np.zeros_like(depth), CAMERA) is None
+
+
+# --- regions that move where no detector looks --------------------------------------------------------
+
+def _tracks_in(x0: int, y0: int, x1: int, y1: int, n: int, rng) -> np.ndarray:
+    return np.c_[rng.uniform(x0, x1 - 1, n), rng.uniform(y0, y1 - 1, n)]
+
+
+def test_a_cpr_region_with_enough_moving_tracks_is_confirmed_whole():
+    rng = np.random.default_rng(0)
+    candidates = np.zeros((480, 640), bool)
+    candidates[100:300, 50:150] = True        # a walker cpr flags
+    candidates[200:400, 400:600] = True       # a static sub-cloud cpr flags too (its MAD threshold)
+    walker, wall = _tracks_in(50, 100, 150, 300, 20, rng), _tracks_in(400, 200, 600, 400, 100, rng)
+    tracks = np.vstack([walker, wall, _tracks_in(0, 0, 640, 80, 400, rng)])  # and tracks outside both
+    moving = np.zeros(len(tracks), bool)
+    moving[:5] = True                          # 5 of the walker's 20 tracks are off their epipolar lines
+    moving[20:23] = True                       # 3 RANSAC outliers among the wall's 100
+    moving[120:130] = True                     # moving tracks outside every cpr region count for nothing
+    assert moving.mean() < 0.05                # 18 of 520: the frame's epipolar test is trustworthy
+    depth = np.full((480, 640), 4.0, np.float32)
+    depth[100:300, 50:150] = 2.0              # the walker stands in front of the wall
+    depth[250:300, 50:150] = 4.0              # their region also holds some wall behind them
+    region = confirmed_regions(candidates, tracks, moving, depth, 3, 0.2)
+    assert region is not None and region.dtype == np.float32
+    # The walker's pixels, not the wall their sub-cloud also holds, nor the static sub-cloud.
+    assert region[100:250, 50:150].all() and region.sum() == 150 * 100
+
+
+def test_too_few_votes_confirm_nothing_and_off_means_none():
+    rng = np.random.default_rng(1)
+    candidates = np.zeros((480, 640), bool)
+    candidates[100:300, 50:150] = True
+    tracks = np.vstack([_tracks_in(50, 100, 150, 300, 8, rng), _tracks_in(200, 0, 640, 480, 200, rng)])
+    depth = np.full((480, 640), 2.0, np.float32)
+    moving = np.zeros(len(tracks), bool)
+    moving[:2] = True                          # a quarter of the region's tracks, but only two
+    assert confirmed_regions(candidates, tracks, moving, depth, 3, 0.2) is None
+    moving[:3] = True
+    assert confirmed_regions(candidates, tracks, moving, depth, 3, 0.2) is not None
+    assert confirmed_regions(np.zeros_like(candidates), tracks, moving, depth, 3, 0.2) is None
+    assert confirmed_regions(candidates, np.zeros((0, 2)), np.zeros(0, bool), depth, 3, 0.2) is None
+
+
+def test_a_frame_whose_tracks_fail_the_epipolar_test_everywhere_confirms_nothing():
+    """Motion blur and fast turns make LK tracks fail F all over the frame (fr1/rpy: up to a third):
+    then the test is no evidence of anything moving."""
+    rng = np.random.default_rng(2)
+    candidates = np.zeros((480, 640), bool)
+    candidates[100:300, 50:150] = True
+    tracks = np.vstack([_tracks_in(50, 100, 150, 300, 20, rng), _tracks_in(200, 0, 640, 480, 80, rng)])
+    moving = np.zeros(len(tracks), bool)
+    moving[:5] = True
+    depth = np.full((480, 640), 2.0, np.float32)
+    assert confirmed_regions(candidates, tracks, moving, depth, 3, 0.2) is not None     # 5 %: trusted
+    moving[20:30] = True                                                               # 15 %: blur
+    assert confirmed_regions(candidates, tracks, moving, depth, 3, 0.2) is None

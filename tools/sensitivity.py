@@ -74,6 +74,8 @@ PARAMETERS = (
               "this fraction of the way to the last one (bounds the map on revisits)"),
     Parameter("dynamic.still_max_move_m", "how far (m) a person's torso may move in still_window_s and still "
               "stand still (then only motion evidence counts on them; 0.15 m in 0.5 s: 0.3 m/s)"),
+    Parameter("dynamic.motion_region_share", "share of a cpr region's flow tracks that must fail the epipolar test "
+              "for the whole region to count as moving without a detection"),
 )
 
 

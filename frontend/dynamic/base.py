@@ -64,6 +64,10 @@ class MethodOutput:
     prob: np.ndarray                        # (N,) in [0, 1], NaN = abstain
     mask: Optional[np.ndarray] = None       # (H,W) float32 in [0, 1] or bool, for diagnostics
     info: dict = field(default_factory=dict)  # method-specific counters for the run summary
+    # Point tracks this frame (raw pixels, (M,2)) and which of them move against the scene's own motion:
+    # motion evidence that needs no detector (flow_epipolar), for the rejector's region decision.
+    tracks: Optional[np.ndarray] = None
+    track_moving: Optional[np.ndarray] = None
 
     @property
     def flagged(self) -> int:

@@ -278,7 +278,7 @@ class FlowEpipolarMethod:
             "grid_features": int(np.sum((prob >= 0.5) & ~kp_dynamic)),
             "motion_evidence": bool(evidence),
         }
-        return MethodOutput(prob, mask, info)
+        return MethodOutput(prob, mask, info, cur_raw[ok], dyn_track[ok])
 
     def _dynamic_tracks(self, ctx: DynamicContext,
                         boxes: list[Detection]) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
@@ -286,12 +286,8 @@ class FlowEpipolarMethod:
         (raw pixels), the good-track flags, the tracks far from their epipolar line, and whether there is
         motion evidence (an F, or no boxes to judge)."""
         cfg = self.cfg
-        # The flow only feeds the sub-box ratios: without boxes the output is the same, so skip it.
-        if boxes:
-            x0, cur_raw, x1, ok = self.track(ctx.gray, ctx.camera)
-        else:
-            x0 = cur_raw = x1 = np.zeros((0, 2))
-            ok = np.zeros(0, bool)
+        # Tracked with or without boxes: the tracks that move against F are detector-free evidence too.
+        x0, cur_raw, x1, ok = self.track(ctx.gray, ctx.camera)
         in_any_box = np.zeros(len(cur_raw), bool)
         for b in boxes:
             in_any_box |= b.contains(cur_raw)

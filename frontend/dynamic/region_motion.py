@@ -1,6 +1,10 @@
-"""Which people stand still in the world (issue 11, item 3; not in any of the four papers).
+"""Region-level decisions on motion (issue 11, items 1 and 3; in none of the four papers).
 
-box_depth and depth_sdf segment people, not motion: they flag a person who stands still as surely as
+Two rules, both about whole regions rather than single features: which detected people stand still
+(``RegionMotion``, below), and which regions move where the detector sees nobody
+(``confirmed_regions``: cpr's dynamic sub-clouds that flow_epipolar's epipolar test confirms).
+
+**Standing still.** box_depth and depth_sdf segment people, not motion: they flag a person who stands still as surely as
 one who walks. cpr and flow_epipolar measure motion. Each person box's 3-D centre (the median of the
 middle third of the box: the torso) is followed in world coordinates from frame to frame, and a person
 whose centre stayed within ``max_move_m`` of every position it had over the last ``window_s`` seconds
@@ -26,14 +30,23 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
+import cv2
 import numpy as np
 
+from frontend.dynamic.base import keypoints_in_mask
 from slam.core.camera import PinholeCamera
 
 _MATCH_M = 0.5
 """A person continues last frame's track whose centre is nearest and less than this far (world, m):
 half a person's shoulder width plus a frame of fast walking (~5 cm), so two people side by side keep
 their own tracks."""
+_MAX_FRAME_OUTLIERS = 0.05
+"""Beyond this share of a frame's tracks off their epipolar lines the test itself is unreliable (motion
+blur, rolling shutter: fr1/rpy's fast turns reach 0.2-0.35, its median frame 0.001; a walker seen whole
+gives 0.01-0.02 on the generated scenes), and no region is confirmed by it."""
+_BODY_BAND_M = 0.5
+"""A confirmed region keeps the pixels within this of its moving tracks' median depth: a body's extent in
+depth about its middle, an arm stretched forward included."""
 _PIXEL_STEP = 2
 """Every 2nd pixel in each direction enters the median (a 200 x 400 px person: ~2 000 pixels)."""
 
@@ -135,3 +148,38 @@ class RegionMotion:
 def _to_world(T_cw: np.ndarray):
     R, t = T_cw[:3, :3], T_cw[:3, 3]
     return lambda p_c: R.T @ (p_c - t)
+
+
+def confirmed_regions(candidates: np.ndarray, tracks: np.ndarray, moving: np.ndarray, depth: np.ndarray,
+                      min_votes: int, min_share: float, band_m: float = _BODY_BAND_M) -> Optional[np.ndarray]:
+    """Motion evidence that needs no detector: the connected parts (8-neighbourhood) of the HxW bool
+    ``candidates`` (cpr's dynamic sub-clouds) in which at least ``min_votes`` of the point ``tracks``
+    ((M,2) raw pixels) are ``moving`` against the scene's own motion (flow_epipolar's epipolar test), and
+    at least ``min_share`` of the tracks there; of such a part, the pixels within ``band_m`` of the
+    median depth of its moving tracks (a sub-cloud also holds the floor and wall around a person).
+    HxW float32 0/1, or None when no part is confirmed or the frame's epipolar test is unreliable.
+
+    Each method alone is not enough: cpr's threshold flags one or two static sub-clouds in most frames,
+    and the epipolar test misses most points of a person (recall 0.17-0.33 per pixel on the generated
+    scenes). A region both flag is moving: three tracks off their epipolar lines inside one region are
+    not a RANSAC outlier or two, and a fifth of a region's tracks is what a walking person gives."""
+    if not len(tracks) or not candidates.any() or np.mean(moving) > _MAX_FRAME_OUTLIERS:
+        return None
+    n, labels = cv2.connectedComponents(candidates.astype(np.uint8), connectivity=8)
+    label_of_track = keypoints_in_mask(labels, tracks)
+    votes = np.bincount(label_of_track[moving], minlength=n)
+    total = np.bincount(label_of_track, minlength=n)
+    confirmed = (votes >= min_votes) & (votes >= min_share * total)
+    confirmed[0] = False                                       # label 0: outside every candidate region
+    if not confirmed.any():
+        return None
+    track_depth = keypoints_in_mask(depth, tracks)
+    centre = np.full(n, np.nan)
+    for k in np.flatnonzero(confirmed):                        # a handful of regions at most
+        d = track_depth[moving & (label_of_track == k) & (track_depth > 0)]
+        if len(d):
+            centre[k] = np.median(d)
+    pixel_centre = centre[labels]
+    with np.errstate(invalid="ignore"):
+        region = np.abs(depth - pixel_centre) < band_m          # NaN centre (no region, no depth): False
+    return region.astype(np.float32) if region.any() else None

@@ -19,11 +19,14 @@ from frontend.dynamic import DynamicStats
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.box_memory import BoxMemory
 from frontend.dynamic.fusion import fuse
-from frontend.dynamic.region_motion import RegionMotion, box_centre
+from frontend.dynamic.region_motion import RegionMotion, box_centre, confirmed_regions
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import DynamicConfig
 from slam.core.frame import FeatureFrame
 from slam.core.timing import ModuleTimer
+
+
+_MOTION_REGION_PROB = 0.9
 
 
 @dataclass
@@ -68,6 +71,7 @@ class DynamicRejector:
         self._region_motion = RegionMotion(cfg.still_window_s, cfg.still_max_move_m)
         self._motion_methods = [k for k, m in enumerate(methods) if m.measures_motion]
         self._still_region: Optional[np.ndarray] = None
+        self._motion_region: Optional[np.ndarray] = None
         self.people_still = 0       # people standing still in the last frame (region_motion)
 
     def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
@@ -138,6 +142,12 @@ class DynamicRejector:
             still = keypoints_in_mask(self._still_region, frame.uv_raw)
             motion = self._motion_only([o.prob for o in outputs.values()], len(frame))
             fused[still] = motion[still]
+        self._motion_region = self._confirmed_motion(outputs, frame, ctx.depth)
+        found_by_motion = 0
+        if self._motion_region is not None:
+            raised = np.maximum(fused, _MOTION_REGION_PROB * keypoints_in_mask(self._motion_region, frame.uv_raw))
+            found_by_motion = int(np.sum((raised >= 0.5) & (fused < 0.5)))
+            fused = raised
         prior_mask = self._box_prior_mask(ctx)
         if prior_mask is not None:
             fused = np.maximum(fused, keypoints_in_mask(prior_mask, frame.uv_raw))
@@ -145,6 +155,8 @@ class DynamicRejector:
         self.stats.add("fused", int(np.sum(fused >= 0.5)))
         if self.detector is not None and self._region_motion.enabled:
             self.stats.add("standing_people", self.people_still)   # a column of dynamic.csv
+        if self.cfg.motion_region_votes > 0 and {"cpr", "flow_epipolar"} <= set(outputs):
+            self.stats.add("motion_regions", found_by_motion)      # features only the region rule flagged
         self._last = (ctx, outputs)
         self.last_outputs, self.last_fused, self.last_keypoints = outputs, fused, frame.uv_raw
         self._mask_inputs = (outputs, ctx.gray.shape, prior_mask)
@@ -166,10 +178,22 @@ class DynamicRejector:
                 motion = fused_pixel_mask(motion_outputs, self.cfg.fusion,
                                           [self._weights[k] for k in self._motion_methods], shape)
                 mask[self._still_region] = 0.0 if motion is None else motion[self._still_region]
+            if mask is not None and self._motion_region is not None:
+                mask = np.maximum(mask, _MOTION_REGION_PROB * self._motion_region)
             if prior is not None:
                 mask = prior if mask is None else np.maximum(mask, prior)
             self._fused_mask = mask
         return self._fused_mask
+
+    def _confirmed_motion(self, outputs: dict[str, MethodOutput], frame: FeatureFrame,
+                          depth: np.ndarray) -> Optional[np.ndarray]:
+        """cpr's regions that flow_epipolar's tracks confirm (region_motion.confirmed_regions), or None."""
+        cpr, flow = outputs.get("cpr"), outputs.get("flow_epipolar")
+        if self.cfg.motion_region_votes <= 0 or cpr is None or flow is None or cpr.mask is None \
+                or flow.tracks is None or not len(frame):
+            return None
+        return confirmed_regions(np.asarray(cpr.mask) >= 0.5, flow.tracks, flow.track_moving, depth,
+                                 self.cfg.motion_region_votes, self.cfg.motion_region_share)
 
     def _motion_only(self, probs: list[np.ndarray], n: int) -> np.ndarray:
         """The fused probability of the motion-measuring methods alone (zeros when none is enabled)."""

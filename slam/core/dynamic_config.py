@@ -218,6 +218,14 @@ class DynamicConfig(ConfigSection):
     landmark-admission threshold (backend.landmark_max_dynamic_prob), so nothing inside a person box
     enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 = off."""
     box_prior_dilate_px: int = Field(10, ge=0)
+    motion_region_votes: int = Field(3, ge=0)
+    """Detector-free evidence (frontend/dynamic/region_motion.py): a connected region of cpr's mask in
+    which at least this many of flow_epipolar's tracks move against the epipolar geometry, and at least
+    ``motion_region_share`` of its tracks, is moving (probability 0.9 on its features and pixels). Needs
+    cpr and flow_epipolar; 0 = off. Three: more than a RANSAC outlier or two in one region."""
+    motion_region_share: float = Field(0.2, **_UNIT)
+    """A fifth: the share of a walking person's tracks the epipolar test flags (per-pixel recall
+    0.17-0.33 on the generated scenes), far above its false alarms on static surfaces."""
     still_window_s: float = Field(0.5, ge=0)
     """A person whose torso stayed within ``still_max_move_m`` in the world for this long stands still:
     in their box only cpr and flow_epipolar (motion evidence) count, above the box prior
