@@ -215,6 +215,7 @@ def demo_run(tmp_path_factory) -> tuple[int, Path]:
     return code, out_dir
 
 
+@pytest.mark.slow   # the 120-frame demo (~7 s) keeps the fast tier under its 2 minutes
 def test_demo_exits_0_and_writes_the_results_folder(demo_run):
     code, out_dir = demo_run
     assert code == 0
@@ -224,6 +225,7 @@ def test_demo_exits_0_and_writes_the_results_folder(demo_run):
     assert config.camera.name == "synthetic"
 
 
+@pytest.mark.slow   # the 120-frame demo (~7 s) keeps the fast tier under its 2 minutes
 def test_demo_summary_counts_and_accuracy(demo_run):
     _, out_dir = demo_run
     summary = json.loads((out_dir / "summary.json").read_text())
@@ -245,6 +247,7 @@ def test_demo_summary_counts_and_accuracy(demo_run):
     assert 1 <= sigma["max_frame"] < 40    # frame 0 initialises the map: no pose estimate, no sigma
 
 
+@pytest.mark.slow   # the 120-frame demo (~7 s) keeps the fast tier under its 2 minutes
 def test_demo_trajectory_files_are_complete_and_sorted(demo_run):
     _, out_dir = demo_run
     rows = data_lines(out_dir / "trajectory.txt")
