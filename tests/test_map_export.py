@@ -77,7 +77,7 @@ def people_run(tmp_path_factory):
 @pytest.mark.slow
 def test_run_leaves_export_inputs(people_run):
     seq, out, summary = people_run
-    masks = sorted((out / "masks").glob("*.png"))
+    masks = sorted(p for p in (out / "masks").glob("*.png") if not p.stem.endswith("_still"))
     assert len(masks) == summary.keyframes
     assert json.loads((out / "summary.json").read_text())["dataset_path"] is None
     listed = [line.split() for line in (out / "keyframes" / "frames.txt").read_text().splitlines()
@@ -296,3 +296,22 @@ def test_bonn_sparse_map_from_a_map_file_and_dataset(bonn_run, tmp_path):
     assert export("--map", out / "map.npz", "--dataset", dataset.root, "--sparse", "--out", tmp_path) == 0
     cloud = o3d.io.read_point_cloud(str(tmp_path / SPARSE))
     assert len(cloud.points) == int((~load_map(out / "map.npz")[0].landmarks.bad).sum()) > 500
+
+
+def test_people_standing_still_are_read_as_dynamic_for_dense_maps(tmp_path):
+    """``masks/<index>.png`` marks moving surfaces; ``<index>_still.png`` the people standing still, whom a
+    dense map must leave out as well (docs/dynamic.md, standing people)."""
+    import cv2
+
+    from slam.run.tsdf import KeyframeSet
+
+    moving = np.zeros((4, 6), np.uint8)
+    moving[0, 0] = 255
+    still = np.zeros((4, 6), np.uint8)
+    still[2:, 3:] = 255
+    cv2.imwrite(str(tmp_path / "000007.png"), moving)
+    cv2.imwrite(str(tmp_path / "000007_still.png"), still)
+    cv2.imwrite(str(tmp_path / "000009.png"), moving)
+    keyframes = KeyframeSet(np.array([7, 9]), np.zeros(2), np.tile(np.eye(4), (2, 1, 1)), None, None, tmp_path)
+    np.testing.assert_array_equal(keyframes.read_mask(0), np.maximum(moving, still))
+    np.testing.assert_array_equal(keyframes.read_mask(1), moving)    # nobody stood still there

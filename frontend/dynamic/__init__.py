@@ -53,6 +53,12 @@ class DynamicFilter(Protocol):
         """HxW float dynamic probability per pixel of the last frame (None when there is none)."""
         ...
 
+    @property
+    def last_still_people(self) -> Optional[np.ndarray]:
+        """HxW bool: pixels of people standing still in the last frame (out of ``last_mask``, but never
+        to be mapped); None when there are none."""
+        ...
+
     def close(self) -> None:
         """Persist what is worth keeping (e.g. the detection cache)."""
         ...
@@ -64,6 +70,7 @@ class StaticWorld:
     name = "none"
     stats = None
     last_mask = None
+    last_still_people = None
 
     def begin_frame(self, rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw) -> None:
         return None

@@ -72,6 +72,7 @@ class DynamicRejector:
         self._motion_methods = [k for k, m in enumerate(methods) if m.measures_motion]
         self._still_region: Optional[np.ndarray] = None
         self._motion_region: Optional[np.ndarray] = None
+        self._still_people_mask: Optional[np.ndarray] = None
         self.people_still = 0       # people standing still in the last frame (region_motion)
 
     def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
@@ -138,10 +139,6 @@ class DynamicRejector:
         fused = fuse([o.prob for o in outputs.values()], self._weights, self.cfg.fusion, len(frame))
         with self.timer.measure("dynamic.standing_people"):
             self._still_region = self._standing_people(ctx)
-        if self._still_region is not None:
-            still = keypoints_in_mask(self._still_region, frame.uv_raw)
-            motion = self._motion_only([o.prob for o in outputs.values()], len(frame))
-            fused[still] = motion[still]
         self._motion_region = self._confirmed_motion(outputs, frame, ctx)
         found_by_motion = 0
         if self._motion_region is not None:
@@ -172,7 +169,10 @@ class DynamicRejector:
         if self._fused_mask is None and self._mask_inputs is not None:
             outputs, shape, prior = self._mask_inputs
             mask = fused_pixel_mask(outputs, self.cfg.fusion, self._weights, shape)
+            self._still_people_mask = None
             if mask is not None and self._still_region is not None:
+                # What the masks would have marked of the people standing still: never mapped (dense maps).
+                self._still_people_mask = (mask >= 0.5) & self._still_region
                 motion_outputs = {name: out for k, (name, out) in enumerate(outputs.items())
                                   if k in self._motion_methods}
                 motion = fused_pixel_mask(motion_outputs, self.cfg.fusion,
@@ -205,11 +205,13 @@ class DynamicRejector:
         return confirmed_regions(candidates, flow.tracks, flow.track_moving, ctx.depth,
                                  self.cfg.motion_region_votes, self.cfg.motion_region_share)
 
-    def _motion_only(self, probs: list[np.ndarray], n: int) -> np.ndarray:
-        """The fused probability of the motion-measuring methods alone (zeros when none is enabled)."""
-        keep = self._motion_methods
-        mode = "max" if self.cfg.fusion == "single" else self.cfg.fusion
-        return fuse([probs[k] for k in keep], [self._weights[k] for k in keep], mode, n)
+    @property
+    def last_still_people(self) -> Optional[np.ndarray]:
+        """HxW bool: the pixels of the last frame's people standing still that the fusion flags as a
+        person (they leave ``last_mask``, a mask of moving surfaces, but must stay out of dense maps);
+        None when nobody stands still."""
+        _ = self.last_mask                      # computed together
+        return self._still_people_mask
 
     def _standing_people(self, ctx: DynamicContext) -> Optional[np.ndarray]:
         """HxW bool: the boxes of the people who stand still (region_motion), less every moving person's

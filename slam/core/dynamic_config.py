@@ -228,8 +228,9 @@ class DynamicConfig(ConfigSection):
     0.17-0.33 on the generated scenes), far above its false alarms on static surfaces."""
     still_window_s: float = Field(0.5, ge=0)
     """A person whose torso stayed within ``still_max_move_m`` in the world for this long stands still:
-    in their box only cpr and flow_epipolar (motion evidence) count, above the box prior
-    (frontend/dynamic/region_motion.py). 0 = off: every person counts as moving."""
+    in their box the keyframe masks (moving surfaces) count only cpr and flow_epipolar (motion evidence),
+    and ``masks/<index>_still.png`` keeps them out of dense maps (frontend/dynamic/region_motion.py).
+    Tracking and the map keep them out either way. 0 = off: every person counts as moving."""
     still_max_move_m: float = Field(0.15, gt=0)
     """0.15 m in 0.5 s is 0.3 m/s: half the slowest walking pace, 5x a standing person's sway."""
     dump_masks_dir: str = ""

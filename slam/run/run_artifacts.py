@@ -1,7 +1,10 @@
 """What a run leaves in its results folder so ``dynslam export`` can rebuild maps without re-running SLAM.
 
 - ``masks/<frame index:06d>.png``  per keyframe, the front end's dynamic probability (8-bit, 255 = 1.0),
-                                   written only with dynamic handling on;
+                                   written only with dynamic handling on: moving surfaces (people
+                                   standing still are left out, frontend/dynamic/region_motion.py);
+- ``masks/<frame index:06d>_still.png``  per keyframe where someone stands still: their pixels (255), which
+                                   dense maps leave out like the moving ones;
 - ``keyframes/``                   when the frames cannot be re-read later (generated sequences, bags,
                                    readers without random access): per keyframe ``color/<index>.png``
                                    (BGR), ``depth/<index>.png`` (16-bit, millimetres) and ``frames.txt``
@@ -26,6 +29,7 @@ from slam.run.sparse_map import write_sparse_ply
 log = logging.getLogger("dynslam")
 
 MASK_DIR = "masks"
+STILL_SUFFIX = "_still"      # masks/<index>_still.png: people standing still (255), never fused into maps
 KEYFRAME_DIR = "keyframes"
 KEYFRAME_LIST = "frames.txt"
 KEYFRAME_DEPTH_SCALE = 1000.0   # keyframes/depth PNGs hold millimetres
@@ -74,6 +78,10 @@ class RunArtifacts:
         mask = system.last_dynamic_mask
         mask = np.zeros(frame.depth.shape, np.float32) if mask is None else mask
         write_png_atomic(self.output_dir / MASK_DIR / f"{frame.index:06d}.png", mask_to_png(mask))
+        still = system.last_still_people_mask
+        if still is not None and still.any():
+            write_png_atomic(self.output_dir / MASK_DIR / f"{frame.index:06d}{STILL_SUFFIX}.png",
+                             still.astype(np.uint8) * 255)
         if self.copy_keyframes:
             self._write_keyframe_images(frame)
 

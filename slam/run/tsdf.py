@@ -53,11 +53,18 @@ class KeyframeSet:
                            lambda k: self.read_images(int(keep[k])), self.mask_dir)
 
     def read_mask(self, k: int) -> Optional[np.ndarray]:
-        """Keyframe k's dynamic probability (0..255), or None when the run recorded none."""
+        """Keyframe k's dynamic probability (0..255), or None when the run recorded none; the people who
+        stood still in it (``<index>_still.png``, 255) count as dynamic too: they must never be mapped."""
         if self.mask_dir is None:
             return None
         path = self.mask_dir / f"{int(self.frame_index[k]):06d}.png"
-        return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+        still = self.mask_dir / f"{int(self.frame_index[k]):06d}_still.png"
+        if mask is not None and still.is_file():
+            people = cv2.imread(str(still), cv2.IMREAD_GRAYSCALE)
+            if people is not None and people.shape == mask.shape:
+                mask = np.maximum(mask, people)
+        return mask
 
 
 @dataclass(frozen=True)

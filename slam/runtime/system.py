@@ -144,6 +144,12 @@ class System:
         """HxW float dynamic probability per pixel of the last frame (None with dynamic handling off)."""
         return self.dynamic_filter.last_mask
 
+    @property
+    def last_still_people_mask(self) -> Optional[np.ndarray]:
+        """HxW bool: the last frame's people standing still (left out of ``last_dynamic_mask``, a mask of
+        moving surfaces, but never to enter a dense map); None when there are none."""
+        return self.dynamic_filter.last_still_people
+
     def place_recognition_report(self) -> tuple[list[dict], dict]:
         """(loops with their keyframes' timestamps, counts and ms per keyframe / per relocalization)."""
         return self.tracking.place_recognition_report()
