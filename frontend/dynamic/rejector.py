@@ -196,12 +196,8 @@ class DynamicRejector:
                 or flow.tracks is None or not len(frame):
             return None
         candidates = np.asarray(cpr.mask) >= 0.5
-        h, w = candidates.shape
-        pad = self.cfg.box_prior_dilate_px
-        for d in ctx.detections or ():
-            if d.class_id in self.cfg.classes.dynamic:
-                candidates[max(int(d.y0) - pad, 0):min(int(np.ceil(d.y1)) + pad, h),
-                           max(int(d.x0) - pad, 0):min(int(np.ceil(d.x1)) + pad, w)] = False
+        for x0, y0, x1, y1 in self._person_boxes(ctx, self.cfg.box_prior_dilate_px):
+            candidates[y0:y1, x0:x1] = False
         return confirmed_regions(candidates, flow.tracks, flow.track_moving, ctx.depth,
                                  self.cfg.motion_region_votes, self.cfg.motion_region_share)
 
@@ -221,9 +217,7 @@ class DynamicRejector:
             self._region_motion.classify([], ctx.predicted_T_cw, ctx.frame.timestamp)
             return None
         h, w = ctx.gray.shape
-        boxes = [(max(int(d.x0), 0), max(int(d.y0), 0), min(int(np.ceil(d.x1)), w), min(int(np.ceil(d.y1)), h))
-                 for d in ctx.detections if d.class_id in self.cfg.classes.dynamic]
-        boxes = [b for b in boxes if b[2] > b[0] and b[3] > b[1]]
+        boxes = self._person_boxes(ctx, 0)
         centres = [box_centre(b, ctx.depth, self.camera) for b in boxes]
         still = self._region_motion.classify(centres, ctx.predicted_T_cw, ctx.frame.timestamp)
         if not still.any():
@@ -238,19 +232,24 @@ class DynamicRejector:
         self.people_still = int(still.sum())
         return region
 
+    def _person_boxes(self, ctx: DynamicContext, pad: int) -> list[tuple[int, int, int, int]]:
+        """The dynamic-class detections as whole-pixel boxes (x0, y0, x1, y1), grown by ``pad`` pixels,
+        clipped to the image, empty ones left out: the box prior, the standing-still test and the
+        detector-free regions all work on these."""
+        h, w = ctx.gray.shape
+        boxes = [(max(int(d.x0) - pad, 0), max(int(d.y0) - pad, 0),
+                  min(int(np.ceil(d.x1)) + pad, w), min(int(np.ceil(d.y1)) + pad, h))
+                 for d in ctx.detections or () if d.class_id in self.cfg.classes.dynamic]
+        return [b for b in boxes if b[2] > b[0] and b[3] > b[1]]
+
     def _box_prior_mask(self, ctx: DynamicContext) -> Optional[np.ndarray]:
         """``box_prior`` inside every dilated dynamic-class box (None when off or no detections)."""
-        if self.cfg.box_prior <= 0 or not ctx.detections:
-            return None
-        boxes = [d for d in ctx.detections if d.class_id in self.cfg.classes.dynamic]
+        boxes = self._person_boxes(ctx, self.cfg.box_prior_dilate_px) if self.cfg.box_prior > 0 else []
         if not boxes:
             return None
-        h, w = ctx.gray.shape
-        mask = np.zeros((h, w), np.float32)
-        pad = self.cfg.box_prior_dilate_px
-        for d in boxes:
-            x0, y0 = max(int(d.x0) - pad, 0), max(int(d.y0) - pad, 0)
-            mask[y0:min(int(np.ceil(d.y1)) + pad, h), x0:min(int(np.ceil(d.x1)) + pad, w)] = self.cfg.box_prior
+        mask = np.zeros(ctx.gray.shape, np.float32)
+        for x0, y0, x1, y1 in boxes:
+            mask[y0:y1, x0:x1] = self.cfg.box_prior
         return mask
 
     def end_frame(self, T_cw: Optional[np.ndarray], is_keyframe: bool) -> None:
