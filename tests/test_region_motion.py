@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frontend.dynamic.region_motion import RegionMotion, box_centre, confirmed_regions
+from frontend.dynamic.region_motion import RegionCarry, RegionMotion, box_centre, confirmed_regions, front_depth
 from slam.core.camera import PinholeCamera
 
 FPS = 30.0
@@ -154,3 +154,78 @@ def test_a_frame_whose_tracks_fail_the_epipolar_test_everywhere_confirms_nothing
     assert confirmed_regions(candidates, tracks, moving, depth, 3, 0.2) is not None     # 5 %: trusted
     moving[20:30] = True                                                               # 15 %: blur
     assert confirmed_regions(candidates, tracks, moving, depth, 3, 0.2) is None
+
+
+def test_a_region_joining_a_walker_to_the_wall_is_decided_on_the_walkers_depth():
+    """cpr's sub-cloud can join a person to the wall behind them: the wall's many still tracks must not
+    outvote the person's (5 of 110 tracks move, 5 of the person's 10)."""
+    rng = np.random.default_rng(3)
+    candidates = np.zeros((480, 640), bool)
+    candidates[100:400, 50:450] = True
+    depth = np.full((480, 640), 3.0, np.float32)
+    depth[100:300, 50:150] = 1.0                                   # the walker, in front of the wall
+    tracks = np.vstack([_tracks_in(50, 100, 150, 300, 10, rng), _tracks_in(160, 100, 450, 400, 100, rng)])
+    moving = np.zeros(len(tracks), bool)
+    moving[:5] = True
+    region = confirmed_regions(candidates, tracks, moving, depth, 3, 0.2)
+    assert region is not None and region.sum() == 200 * 100 and region[100:300, 50:150].all()
+
+
+def test_front_depth_is_the_mover_not_the_background_its_silhouette_drags():
+    # Three tracks on a person at ~0.8 m and five on the wall just behind their silhouette.
+    assert front_depth(np.array([2.5, 0.82, 2.52, 0.8, 2.55, 2.6, 0.85, 2.61, 0.0]), 3, 0.5) == pytest.approx(0.82)
+    assert front_depth(np.array([2.5, 0.82, 2.52, 0.8, 2.55]), 3, 0.5) == pytest.approx(2.52)   # two: no group
+    assert front_depth(np.array([1.0, 2.0]), 3, 0.5) is None
+
+
+def _person_frame(x0: int, depth_m: float = 1.0) -> np.ndarray:
+    depth = np.full((480, 640), 3.0, np.float32)
+    depth[100:300, x0:x0 + 100] = depth_m
+    return depth
+
+
+def test_a_confirmed_region_is_carried_along_its_own_tracks_for_a_few_frames_of_thin_evidence():
+    rng = np.random.default_rng(4)
+    carry = RegionCarry(hold_frames=3)
+    allowed = np.ones((480, 640), bool)
+    confirmed = np.zeros((480, 640), np.float32)
+    confirmed[100:300, 100:200] = 1.0
+    assert carry.update(confirmed, None, None, None, _person_frame(100), allowed) is confirmed
+    x0, carried = 100, []
+    for _ in range(5):                                              # the person moves 20 px per frame
+        person = _tracks_in(x0, 100, x0 + 100, 300, 6, rng)
+        # Tracks that start on the person's edge and end on the wall beside them (an occluding edge
+        # drags LK windows): they must not pull the shift or the depth band.
+        edge = _tracks_in(x0 + 90, 100, x0 + 100, 300, 6, rng)
+        origins = np.vstack([person, edge, _tracks_in(400, 0, 640, 480, 50, rng)])
+        tracks = origins + np.r_[np.tile([20.0, 0.0], (6, 1)), np.tile([45.0, 0.0], (6, 1)), np.zeros((50, 2))]
+        moving = np.zeros(len(tracks), bool)
+        moving[0] = True                                            # one of the person's tracks fails F
+        moving[6:9] = True                                          # and three dragged ones
+        x0 += 20
+        region = carry.update(None, origins, tracks, moving, _person_frame(x0), allowed)
+        carried.append(None if region is None else region.astype(bool))
+    # Carried three frames (the hold), shifted with the person, the wall behind left out.
+    for k in range(3):
+        x = 120 + 20 * k
+        assert carried[k] is not None and carried[k][100:300, x:x + 80].all() and carried[k].sum() <= 200 * 100
+    assert carried[3] is None and carried[4] is None
+
+
+def test_a_region_whose_own_tracks_stopped_moving_or_left_is_not_carried():
+    rng = np.random.default_rng(5)
+    allowed = np.ones((480, 640), bool)
+    confirmed = np.zeros((480, 640), np.float32)
+    confirmed[100:300, 100:200] = 1.0
+    origins = np.vstack([_tracks_in(100, 100, 200, 300, 6, rng), _tracks_in(300, 0, 640, 480, 50, rng)])
+    still = np.zeros(len(origins), bool)
+    carry = RegionCarry(hold_frames=5)
+    carry.update(confirmed, None, None, None, _person_frame(100), allowed)
+    assert carry.update(None, origins, origins, still, _person_frame(100), allowed) is None   # no motion left
+    carry.update(confirmed, None, None, None, _person_frame(100), allowed)
+    moving = still.copy()
+    moving[0] = True
+    assert carry.update(None, origins, origins, moving, _person_frame(100), allowed) is not None
+    # Inside a person box (not allowed) the box methods decide, not the carry.
+    carry.update(confirmed, None, None, None, _person_frame(100), allowed)
+    assert carry.update(None, origins, origins, moving, _person_frame(100), np.zeros_like(allowed)) is None

@@ -9,7 +9,7 @@ lives outside this package because it also builds the detector, which imports th
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional, Protocol
+from typing import Optional, Protocol, Sequence
 
 import numpy as np
 
@@ -28,9 +28,23 @@ class DynamicStats:
                        "frames_with_flags": int(np.count_nonzero(c))} for name, c in self.flagged.items() if c}
 
 
+@dataclass
+class RevisedMask:
+    """An earlier keyframe's masks composed again (``keyframe_masks``): ``mask`` for
+    ``masks/<index>.png``, ``still_people`` for ``masks/<index>_still.png`` (None: nobody stands still)."""
+
+    frame_index: int
+    timestamp: float
+    mask: np.ndarray
+    still_people: Optional[np.ndarray]
+
+
 class DynamicFilter(Protocol):
     name: str
     stats: Optional[DynamicStats]   # per-frame flag counts (None for the null filter)
+    # After ``end_frame``: earlier keyframes whose masks changed, because a person in them was found
+    # standing still once followed for a whole window (frontend/dynamic/keyframe_masks.py).
+    revised_masks: Sequence[RevisedMask]
 
     def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
                     predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> None:
@@ -71,6 +85,7 @@ class StaticWorld:
     stats = None
     last_mask = None
     last_still_people = None
+    revised_masks: Sequence[RevisedMask] = ()
 
     def begin_frame(self, rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw) -> None:
         return None

@@ -68,6 +68,7 @@ class MethodOutput:
     # motion evidence that needs no detector (flow_epipolar), for the rejector's region decision.
     tracks: Optional[np.ndarray] = None
     track_moving: Optional[np.ndarray] = None
+    track_origins: Optional[np.ndarray] = None   # (M,2) where each track was in the previous frame
 
     @property
     def flagged(self) -> int:

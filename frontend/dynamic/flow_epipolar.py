@@ -278,7 +278,8 @@ class FlowEpipolarMethod:
             "grid_features": int(np.sum((prob >= 0.5) & ~kp_dynamic)),
             "motion_evidence": bool(evidence),
         }
-        return MethodOutput(prob, mask, info, cur_raw[ok], dyn_track[ok])
+        origins = np.zeros((0, 2)) if self._prev_raw is None or len(self._prev_raw) != len(ok) else self._prev_raw[ok]
+        return MethodOutput(prob, mask, info, cur_raw[ok], dyn_track[ok], origins)
 
     def _dynamic_tracks(self, ctx: DynamicContext,
                         boxes: list[Detection]) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:

@@ -2,7 +2,8 @@
 
 Two rules, both about whole regions rather than single features: which detected people stand still
 (``RegionMotion``, below), and which regions move where the detector sees nobody
-(``confirmed_regions``: cpr's dynamic sub-clouds that flow_epipolar's epipolar test confirms).
+(``confirmed_regions``: cpr's dynamic sub-clouds that flow_epipolar's epipolar test confirms;
+``RegionCarry`` follows a confirmed region through the frames where that evidence is too thin).
 
 **Standing still.** box_depth and depth_sdf segment people, not motion: they flag a person who stands still as surely as
 one who walks. cpr and flow_epipolar measure motion. Each person box's 3-D centre (the median of the
@@ -86,7 +87,8 @@ class RegionMotion:
         self._tracks: list[_Track] = []
         # The current frame's people (camera-frame centres) and the track each continues, until
         # ``commit`` places them in the world with the frame's tracked pose.
-        self._pending: list[tuple[np.ndarray, Optional[_Track]]] = []
+        self._pending: list[tuple[int, np.ndarray, Optional[_Track]]] = []
+        self._people = 0
         self._time = 0.0
 
     @property
@@ -100,7 +102,7 @@ class RegionMotion:
                  timestamp: float) -> np.ndarray:
         """Per person (camera-frame centre, None without depth): True for those who stand still."""
         still = np.zeros(len(centres), bool)
-        self._time, self._pending = timestamp, []
+        self._time, self._pending, self._people = timestamp, [], len(centres)
         if not self.enabled:
             return still
         world = None if predicted_T_cw is None else _to_world(predicted_T_cw)
@@ -117,18 +119,20 @@ class RegionMotion:
                 if dist[j] < _MATCH_M:
                     track = free.pop(j)
                     still[k] = self._stands_still(track, w, timestamp)
-            self._pending.append((centre, track))
+            self._pending.append((int(k), centre, track))
         return still
 
-    def commit(self, T_cw: Optional[np.ndarray]) -> None:
+    def commit(self, T_cw: Optional[np.ndarray]) -> list[Optional[_Track]]:
         """After tracking: the frame's people join their tracks at the tracked pose; without a pose
-        every track ends (no world position to compare with)."""
+        every track ends (no world position to compare with). Returns each person's track, in the order
+        ``classify`` got them (None: no depth, or no pose); a track is the same object while it goes on."""
         pending, self._pending = self._pending, []
+        per_person: list[Optional[_Track]] = [None] * self._people
         if T_cw is None:
             self._tracks = []
-            return
+            return per_person
         world, tracks = _to_world(T_cw), []
-        for centre, track in pending:
+        for k, centre, track in pending:
             track = track or _Track()
             track.times.append(self._time)
             track.centres.append(world(centre))
@@ -137,7 +141,9 @@ class RegionMotion:
             if old:
                 del track.times[:old[-1]], track.centres[:old[-1]]
             tracks.append(track)
+            per_person[k] = track
         self._tracks = tracks
+        return per_person
 
     def _stands_still(self, track: _Track, centre_w: np.ndarray, now: float) -> bool:
         if not track.times or track.times[0] > now - self.window_s:
@@ -149,6 +155,24 @@ class RegionMotion:
 def _to_world(T_cw: np.ndarray):
     R, t = T_cw[:3, :3], T_cw[:3, 3]
     return lambda p_c: R.T @ (p_c - t)
+
+
+def front_depth(depths: np.ndarray, min_count: int, band_m: float) -> Optional[float]:
+    """Median depth of the front-most group of at least ``min_count`` of ``depths`` (moving tracks')
+    within ``band_m`` of each other, or None. Not the plain median: a mover drags the tracks on the
+    background just behind its silhouette along (their LK windows hold the occluding edge), so they fail
+    the epipolar test too, and a narrow or passing person can have more of those than of their own
+    (generated border scene, frame 106: 8 moving tracks in the person's region, 3 on the person). The
+    mover is the surface in front."""
+    d = np.sort(depths[depths > 0])
+    if len(d) < min_count:
+        return None
+    upto = np.searchsorted(d, d + band_m, side="left")     # d[i:upto[i]] lie within band_m behind d[i]
+    groups = np.flatnonzero(upto - np.arange(len(d)) >= min_count)
+    if not len(groups):
+        return None
+    i = groups[0]
+    return float(np.median(d[i:upto[i]]))
 
 
 def confirmed_regions(candidates: np.ndarray, tracks: np.ndarray, moving: np.ndarray, depth: np.ndarray,
@@ -168,19 +192,86 @@ def confirmed_regions(candidates: np.ndarray, tracks: np.ndarray, moving: np.nda
         return None
     n, labels = cv2.connectedComponents(candidates.astype(np.uint8), connectivity=8)
     label_of_track = keypoints_in_mask(labels, tracks)
-    votes = np.bincount(label_of_track[moving], minlength=n)
-    total = np.bincount(label_of_track, minlength=n)
-    confirmed = (votes >= min_votes) & (votes >= min_share * total)
-    confirmed[0] = False                                       # label 0: outside every candidate region
-    if not confirmed.any():
-        return None
     track_depth = keypoints_in_mask(depth, tracks)
+    votes = np.bincount(label_of_track[moving], minlength=n)
     centre = np.full(n, np.nan)
-    for k in np.flatnonzero(confirmed):                        # a handful of regions at most
-        d = track_depth[moving & (label_of_track == k) & (track_depth > 0)]
-        if len(d):
-            centre[k] = np.median(d)
+    for k in np.flatnonzero(votes >= min_votes):               # a handful of regions at most
+        if k == 0:
+            continue                                           # label 0: outside every candidate region
+        in_region = label_of_track == k
+        mover = front_depth(track_depth[moving & in_region & (track_depth > 0)], min_votes, band_m)
+        if mover is None:
+            continue
+        # The decision is made on the region's part in the mover's depth band: a sub-cloud that joins a
+        # person to the wall behind them holds the wall's many still tracks, which would outvote the
+        # person's (generated border scene, frames 99-107: 145-358 tracks, 9-15 moving).
+        band = in_region & (np.abs(track_depth - mover) < band_m)
+        band_votes = int(np.sum(band & moving))
+        if band_votes >= min_votes and band_votes >= min_share * int(np.sum(band)):
+            centre[k] = mover
+    if np.isnan(centre).all():
+        return None
     pixel_centre = centre[labels]
     with np.errstate(invalid="ignore"):
         region = np.abs(depth - pixel_centre) < band_m          # NaN centre (no region, no depth): False
     return region.astype(np.float32) if region.any() else None
+
+
+class RegionCarry:
+    """Follows the last confirmed motion region (``confirmed_regions``) through frames where the evidence
+    is too thin to confirm it again: a person passing the image border gives cpr and flow_epipolar only a
+    handful of tracks, and in some frames fewer than ``min_votes`` of them fail the epipolar test
+    (generated border scene: 1-2 on frames 105 and 108-110, 4-15 on the frames around them).
+
+    The region is tracked, not guessed: it moves by the median image motion of the point tracks that
+    started inside it (flow_epipolar's LK tracks: the person's own points) and keeps the pixels within
+    ``band_m`` of those tracks' current median depth. It is carried at most ``hold_frames`` frames after
+    its last confirmation, the hold the detector's boxes get for the same kind of gap (box_memory), and
+    needs ``min_tracks`` of its own tracks (started inside it, still at its depth), so it cannot drift off
+    onto the background on its own, and one of them off its epipolar line: the passing person keeps 1-2
+    such tracks per frame, while a static surface that passed the test once (fr1/rpy's blurred turns:
+    6 regions in 400 frames) has none the next frame and is not carried."""
+
+    def __init__(self, hold_frames: int, min_tracks: int = 2, band_m: float = _BODY_BAND_M):
+        # Two of the region's own tracks: one LK track alone can be a mismatch; a passing person keeps
+        # only 2-11 tracks at the border (generated border scene).
+        self.hold_frames = int(hold_frames)
+        self.min_tracks = int(min_tracks)
+        self.band_m = float(band_m)
+        self._region: Optional[np.ndarray] = None   # HxW bool, the last frame's region
+        self._centre = 0.0                          # its median depth (m)
+        self._age = 0                               # frames since it was last confirmed
+
+    def reset(self) -> None:
+        self._region, self._age = None, 0
+
+    def update(self, confirmed: Optional[np.ndarray], origins: Optional[np.ndarray], tracks: Optional[np.ndarray],
+               moving: Optional[np.ndarray], depth: np.ndarray, allowed: np.ndarray) -> Optional[np.ndarray]:
+        """This frame's motion region (HxW float32 0/1, or None): ``confirmed`` when there is one, else
+        the last region carried along its tracks (``origins`` -> ``tracks``, raw pixels; ``moving``: those
+        off their epipolar lines), within ``allowed`` (outside the person boxes)."""
+        if confirmed is not None:
+            self._region, self._age = confirmed > 0, 0
+            self._centre = float(np.median(depth[self._region]))
+            return confirmed
+        carried = self._carry(origins, tracks, moving, depth, allowed)
+        self._region, self._age = carried, self._age + 1
+        return None if carried is None else carried.astype(np.float32)
+
+    def _carry(self, origins, tracks, moving, depth, allowed) -> Optional[np.ndarray]:
+        if self._region is None or self._age >= self.hold_frames or origins is None or tracks is None \
+                or moving is None or len(origins) != len(tracks) or not len(origins):
+            return None
+        # The region's own points: tracks that started inside it and are still at its depth (a track on
+        # the background at its silhouette would pull the shift and the depth band off the person).
+        d = keypoints_in_mask(depth, tracks)
+        own = keypoints_in_mask(self._region, origins).astype(bool) & (np.abs(d - self._centre) < self.band_m)
+        if own.sum() < self.min_tracks or not np.any(own & moving):
+            return None
+        shift = np.median(tracks[own] - origins[own], axis=0)
+        h, w = self._region.shape
+        moved = cv2.warpAffine(self._region.astype(np.uint8), np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]),
+                               (w, h), flags=cv2.INTER_NEAREST).astype(bool)
+        self._centre = float(np.median(d[own]))
+        region = moved & allowed & (np.abs(depth - self._centre) < self.band_m)
+        return region if region.any() else None

@@ -15,11 +15,13 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from frontend.dynamic import DynamicStats
+from frontend.dynamic import DynamicStats, RevisedMask
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.box_memory import BoxMemory
 from frontend.dynamic.fusion import fuse
-from frontend.dynamic.region_motion import RegionMotion, box_centre, confirmed_regions
+from frontend.dynamic.keyframe_masks import (KeyframeMaskLedger, MaskParts, compose_mask,
+                                              still_region)
+from frontend.dynamic.region_motion import RegionCarry, RegionMotion, box_centre, confirmed_regions
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import DynamicConfig
 from slam.core.frame import FeatureFrame
@@ -52,7 +54,7 @@ class DynamicRejector:
         self._weights = [getattr(cfg, m.name).weight for m in methods]
         self._last: Optional[tuple[DynamicContext, dict[str, MethodOutput]]] = None
         self._dump_dir = Path(cfg.dump_masks_dir) if cfg.dump_masks_dir else None
-        self._mask_inputs: Optional[tuple] = None
+        self._mask_parts: Optional[MaskParts] = None
         self._fused_mask: Optional[np.ndarray] = None
         # The last frame's per-method outputs and fused probabilities, for diagnostics and evaluation.
         self.last_outputs: dict[str, MethodOutput] = {}
@@ -69,11 +71,18 @@ class DynamicRejector:
         self._begun: Optional[_BegunFrame] = None
         self._box_memory = BoxMemory(cfg.detector.hold_frames, set(cfg.classes.dynamic), camera.width, camera.height)
         self._region_motion = RegionMotion(cfg.still_window_s, cfg.still_max_move_m)
+        # A confirmed motion region is carried through thin-evidence frames as long as a lost box is held.
+        self._region_carry = RegionCarry(cfg.detector.hold_frames)
         self._motion_methods = [k for k, m in enumerate(methods) if m.measures_motion]
         self._still_region: Optional[np.ndarray] = None
         self._motion_region: Optional[np.ndarray] = None
         self._still_people_mask: Optional[np.ndarray] = None
+        self._people: tuple[list, np.ndarray] = ([], np.zeros(0, bool))   # the frame's person boxes, who stands
+        self._keyframe_masks = KeyframeMaskLedger(cfg.still_window_s)
         self.people_still = 0       # people standing still in the last frame (region_motion)
+        # Earlier keyframes' masks composed again after the last frame: a person in them was found
+        # standing still (keyframe_masks); the run's outputs rewrite those keyframes' mask files.
+        self.revised_masks: list[RevisedMask] = []
 
     def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
                     predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> None:
@@ -156,7 +165,9 @@ class DynamicRejector:
             self.stats.add("motion_regions", found_by_motion)      # features only the region rule flagged
         self._last = (ctx, outputs)
         self.last_outputs, self.last_fused, self.last_keypoints = outputs, fused, frame.uv_raw
-        self._mask_inputs = (outputs, ctx.gray.shape, prior_mask)
+        motion_region = None if self._motion_region is None else _MOTION_REGION_PROB * self._motion_region
+        self._mask_parts = MaskParts(outputs, self._weights, self._motion_methods, self.cfg.fusion, ctx.gray.shape,
+                                     motion_region, prior_mask)
         self._fused_mask = None
         if self._dump_dir is not None:
             self._dump(ctx, outputs, fused)
@@ -164,42 +175,31 @@ class DynamicRejector:
 
     @property
     def last_mask(self) -> Optional[np.ndarray]:
-        """The last frame's fused pixel mask, computed on first use: fusing four full-resolution
-        masks costs ~10 ms and is needed only when static features run short (and for overlays)."""
-        if self._fused_mask is None and self._mask_inputs is not None:
-            outputs, shape, prior = self._mask_inputs
-            mask = fused_pixel_mask(outputs, self.cfg.fusion, self._weights, shape)
-            self._still_people_mask = None
-            if mask is not None and self._still_region is not None:
-                # What the masks would have marked of the people standing still: never mapped (dense maps).
-                self._still_people_mask = (mask >= 0.5) & self._still_region
-                motion_outputs = {name: out for k, (name, out) in enumerate(outputs.items())
-                                  if k in self._motion_methods}
-                motion = fused_pixel_mask(motion_outputs, self.cfg.fusion,
-                                          [self._weights[k] for k in self._motion_methods], shape)
-                mask[self._still_region] = 0.0 if motion is None else motion[self._still_region]
-            if mask is not None and self._motion_region is not None:
-                mask = np.maximum(mask, _MOTION_REGION_PROB * self._motion_region)
-            if prior is not None:
-                mask = prior if mask is None else np.maximum(mask, prior)
-            self._fused_mask = mask
+        """The last frame's fused pixel mask of moving surfaces, computed on first use: fusing four
+        full-resolution masks costs ~10 ms and is needed only when static features run short, for
+        keyframes and for overlays."""
+        if self._fused_mask is None and self._mask_parts is not None:
+            self._fused_mask, self._still_people_mask = compose_mask(self._mask_parts, self._still_region)
         return self._fused_mask
 
     def _confirmed_motion(self, outputs: dict[str, MethodOutput], frame: FeatureFrame,
                           ctx: DynamicContext) -> Optional[np.ndarray]:
         """cpr's regions that flow_epipolar's tracks confirm (region_motion.confirmed_regions) where the
-        detector sees nobody, or None. Inside a (dilated) person box the box methods segment the person
+        detector sees nobody, carried through a few frames of thin evidence (RegionCarry), or None. Inside a (dilated) person box the box methods segment the person
         better; there a cpr region also holds the floor and wall around them, and flagging those costs
         tracking its static points (generated crowds: close_pass 3.8 -> 4.0 mm, three_close 6.0 -> 7.1)."""
         cpr, flow = outputs.get("cpr"), outputs.get("flow_epipolar")
         if self.cfg.motion_region_votes <= 0 or cpr is None or flow is None or cpr.mask is None \
                 or flow.tracks is None or not len(frame):
             return None
-        candidates = np.asarray(cpr.mask) >= 0.5
+        allowed = np.ones(ctx.gray.shape, bool)
         for x0, y0, x1, y1 in self._person_boxes(ctx, self.cfg.box_prior_dilate_px):
-            candidates[y0:y1, x0:x1] = False
-        return confirmed_regions(candidates, flow.tracks, flow.track_moving, ctx.depth,
-                                 self.cfg.motion_region_votes, self.cfg.motion_region_share)
+            allowed[y0:y1, x0:x1] = False
+        candidates = (np.asarray(cpr.mask) >= 0.5) & allowed
+        confirmed = confirmed_regions(candidates, flow.tracks, flow.track_moving, ctx.depth,
+                                      self.cfg.motion_region_votes, self.cfg.motion_region_share)
+        return self._region_carry.update(confirmed, flow.track_origins, flow.tracks, flow.track_moving, ctx.depth,
+                                        allowed)
 
     @property
     def last_still_people(self) -> Optional[np.ndarray]:
@@ -213,24 +213,16 @@ class DynamicRejector:
         """HxW bool: the boxes of the people who stand still (region_motion), less every moving person's
         box (a walker in front of them keeps all the evidence); None when nobody stands still."""
         self.people_still = 0
+        self._people = ([], np.zeros(0, bool))
         if not self._region_motion.enabled or not ctx.detections:
             self._region_motion.classify([], ctx.predicted_T_cw, ctx.frame.timestamp)
             return None
-        h, w = ctx.gray.shape
         boxes = self._person_boxes(ctx, 0)
         centres = [box_centre(b, ctx.depth, self.camera) for b in boxes]
         still = self._region_motion.classify(centres, ctx.predicted_T_cw, ctx.frame.timestamp)
-        if not still.any():
-            return None
-        region = np.zeros((h, w), bool)
-        for (x0, y0, x1, y1), k_still in zip(boxes, still):
-            if k_still:
-                region[y0:y1, x0:x1] = True
-        for (x0, y0, x1, y1), k_still in zip(boxes, still):
-            if not k_still:
-                region[y0:y1, x0:x1] = False
+        self._people = (boxes, still)
         self.people_still = int(still.sum())
-        return region
+        return still_region(ctx.gray.shape, boxes, still)
 
     def _person_boxes(self, ctx: DynamicContext, pad: int) -> list[tuple[int, int, int, int]]:
         """The dynamic-class detections as whole-pixel boxes (x0, y0, x1, y1), grown by ``pad`` pixels,
@@ -256,7 +248,10 @@ class DynamicRejector:
         if self._last is None:
             return
         ctx, outputs = self._last
-        self._region_motion.commit(T_cw)
+        tracks = self._region_motion.commit(T_cw)
+        boxes, still = self._people
+        keyframe = (ctx.frame.index, self._mask_parts, boxes) if is_keyframe and self._mask_parts is not None else None
+        self.revised_masks = self._keyframe_masks.advance(ctx.frame.timestamp, tracks, still, keyframe)
         for method in self.methods:
             with self.timer.measure(f"dynamic.{method.name}"):
                 method.end_frame(ctx, outputs[method.name], T_cw, is_keyframe)
@@ -276,20 +271,6 @@ class DynamicRejector:
     def _dump(self, ctx: DynamicContext, outputs: dict[str, MethodOutput], fused: np.ndarray) -> None:
         self._dump_dir.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(self._dump_dir / f"{ctx.frame.index:06d}.png"), overlay(ctx, outputs, fused))
-
-
-def fused_pixel_mask(outputs: dict[str, MethodOutput], mode: str, weights: list[float],
-                     shape: tuple[int, int]) -> Optional[np.ndarray]:
-    """The methods' pixel masks fused like their keypoint probabilities (None if none has a mask)."""
-    masks, used = [], []
-    for weight, out in zip(weights, outputs.values()):
-        if out.mask is not None and np.shape(out.mask) == tuple(shape):
-            masks.append(np.asarray(out.mask, np.float32).reshape(1, -1))
-            used.append(weight)
-    if not masks:
-        return None
-    mode = "max" if mode == "single" else mode
-    return fuse(masks, used, mode, masks[0].shape[1]).reshape(shape).astype(np.float32)
 
 
 _COLOURS = [(0, 0, 255), (0, 200, 255), (255, 0, 255), (255, 128, 0)]

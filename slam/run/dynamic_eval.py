@@ -17,6 +17,7 @@ from frontend.dynamic.base import keypoints_in_mask
 from frontend.dynamic.oracle import precision_recall, synthetic_oracle
 from slam.core.config import SlamConfig, apply_overrides, apply_yaml
 from slam.datasets import SyntheticSequence
+from slam.run.run_artifacts import mask_to_png
 from slam.runtime.system import System
 
 
@@ -127,6 +128,7 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
     truths: list[np.ndarray] = []
     keeps: list[np.ndarray] = []
     masks: dict[str, PixelCounts] = {}
+    keyframe_masks: dict[int, tuple[np.ndarray, np.ndarray]] = {}   # frame index -> (8-bit fused, truth)
     scores = ClassificationScores()
     for frame in sequence:
         out = system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
@@ -138,8 +140,15 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
         for name, output in rejector.last_outputs.items():
             flags.setdefault(name, []).append(np.nan_to_num(output.prob, nan=0.0) >= 0.5)
         flags.setdefault("fused", []).append(rejector.last_fused >= config.tracking.dynamic_threshold)
+        for revised in system.revised_keyframe_masks:     # a person there turned out to stand still
+            keyframe_masks[revised.frame_index] = (mask_to_png(revised.mask), keyframe_masks[revised.frame_index][1])
         if out.is_keyframe:
-            _count_masks(masks, rejector.last_outputs, system.last_dynamic_mask, frame.dynamic_mask)
+            _count_masks(masks, rejector.last_outputs, frame.dynamic_mask)
+            fused = system.last_dynamic_mask
+            fused = np.zeros(frame.dynamic_mask.shape, np.float32) if fused is None else fused
+            keyframe_masks[frame.index] = (mask_to_png(fused), frame.dynamic_mask.astype(bool))
+    for png, truth_mask in keyframe_masks.values():   # what masks/ holds at the end of the run
+        masks.setdefault("fused", PixelCounts()).add(png.astype(np.float32) / 255.0, truth_mask)
     keep = np.concatenate(keeps)
     truth = np.concatenate(truths)[keep]
     scores.features, scores.dynamic_features = len(truth), int(truth.sum())
@@ -155,11 +164,9 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
     return evaluation
 
 
-def _count_masks(counts: dict[str, PixelCounts], outputs, fused: np.ndarray | None, truth: np.ndarray) -> None:
-    """Each method's pixel mask (a method without one counts as flagging nothing) and the fused mask
-    (what ``masks/`` stores for a keyframe)."""
+def _count_masks(counts: dict[str, PixelCounts], outputs, truth: np.ndarray) -> None:
+    """Each method's pixel mask (a method without one counts as flagging nothing)."""
     empty = np.zeros(truth.shape, np.float32)
     for name, output in outputs.items():
         mask = output.mask if output.mask is not None and np.shape(output.mask) == truth.shape else empty
         counts.setdefault(name, PixelCounts()).add(np.asarray(mask, np.float32), truth)
-    counts.setdefault("fused", PixelCounts()).add(empty if fused is None else fused, truth)

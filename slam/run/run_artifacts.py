@@ -71,19 +71,25 @@ class RunArtifacts:
         self._keyframe_rows: list[str] = []
 
     def on_frame(self, out, frame, system) -> None:
-        """Pipeline hook, once per processed frame: keyframes leave their mask (and images)."""
+        """Pipeline hook, once per processed frame: keyframes leave their mask (and images); earlier
+        keyframes whose masks the front end revised (a person there turned out to stand still) are
+        written again."""
+        for revised in system.revised_keyframe_masks:
+            self._write_masks(revised.frame_index, revised.mask, revised.still_people)
         if not out.is_keyframe:
             return
         # Every keyframe has a mask (all zeros with dynamic handling off), so export never guesses.
         mask = system.last_dynamic_mask
         mask = np.zeros(frame.depth.shape, np.float32) if mask is None else mask
-        write_png_atomic(self.output_dir / MASK_DIR / f"{frame.index:06d}.png", mask_to_png(mask))
-        still = system.last_still_people_mask
-        if still is not None and still.any():
-            write_png_atomic(self.output_dir / MASK_DIR / f"{frame.index:06d}{STILL_SUFFIX}.png",
-                             still.astype(np.uint8) * 255)
+        self._write_masks(frame.index, mask, system.last_still_people_mask)
         if self.copy_keyframes:
             self._write_keyframe_images(frame)
+
+    def _write_masks(self, index: int, mask: np.ndarray, still: Optional[np.ndarray]) -> None:
+        write_png_atomic(self.output_dir / MASK_DIR / f"{index:06d}.png", mask_to_png(mask))
+        still_path = self.output_dir / MASK_DIR / f"{index:06d}{STILL_SUFFIX}.png"
+        if still is not None and still.any():
+            write_png_atomic(still_path, still.astype(np.uint8) * 255)
 
     def _write_keyframe_images(self, frame) -> None:
         folder = self.output_dir / KEYFRAME_DIR

@@ -11,7 +11,7 @@ triggering; slam/runtime/tracking_loop.py) → local mapper (iSAM2 windows in th
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Sequence
 
 import cv2
 import numpy as np
@@ -23,7 +23,7 @@ from backend.map_store import SlamMap
 from backend.place_recognition import Vocabulary, load_vocabulary
 from backend.pnp_verification import PnpParams
 from backend.relocalization import Relocalizer
-from frontend.dynamic import DynamicFilter
+from frontend.dynamic import DynamicFilter, RevisedMask
 from frontend.dynamic_filter import build_dynamic_filter
 from frontend.orb_extractor import OrbExtractor
 from frontend.static_refill import refill_static
@@ -149,6 +149,12 @@ class System:
         """HxW bool: the last frame's people standing still (left out of ``last_dynamic_mask``, a mask of
         moving surfaces, but never to enter a dense map); None when there are none."""
         return self.dynamic_filter.last_still_people
+
+    @property
+    def revised_keyframe_masks(self) -> Sequence[RevisedMask]:
+        """Earlier keyframes whose masks the last frame changed (a person in them turned out to stand
+        still; frontend/dynamic/keyframe_masks.py): outputs rewrite their ``masks/`` files."""
+        return self.dynamic_filter.revised_masks
 
     def place_recognition_report(self) -> tuple[list[dict], dict]:
         """(loops with their keyframes' timestamps, counts and ms per keyframe / per relocalization)."""

@@ -1,0 +1,158 @@
+"""The keyframe masks: the fused pixel mask of moving surfaces (what ``masks/`` stores), and its
+revision once a person seen in a keyframe turns out to have stood still there.
+
+A person counts as moving until ``region_motion.RegionMotion`` has followed them for a whole window
+(0.5 s) and seen them stay put: the safe side for tracking, which must decide at once. A mask is an
+output and can wait for the evidence. When a person is found still over the window ``[t - w, t]``, they
+stood still in every keyframe of that window too, so those keyframes' masks are composed again with the
+person standing (``KeyframeMaskLedger``), and the run's outputs rewrite them. Without this, the first
+keyframes of a scene whose person stands were masked on the whole person (generated ``stand_walk``:
+precision 0.46, every false alarm on the standing person in the three keyframes before the window ended).
+Dense maps leave standing and moving people out alike, so a revision moves pixels between
+``masks/<index>.png`` and ``masks/<index>_still.png`` and changes no map.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from frontend.dynamic import RevisedMask
+from frontend.dynamic.base import MethodOutput
+from frontend.dynamic.fusion import fuse
+
+Box = tuple[int, int, int, int]          # x0, y0, x1, y1 whole pixels
+
+
+class MaskParts:
+    """What a frame's fused pixel mask is composed of. The fused masks are computed on first use (fusing
+    four full-resolution masks costs ~10 ms) and kept, so a keyframe's record holds its own arrays and no
+    reference to the methods' outputs."""
+
+    def __init__(self, outputs: dict[str, MethodOutput], weights: list[float], motion_methods: list[int],
+                 fusion: str, shape: tuple[int, int], motion_region: Optional[np.ndarray],
+                 prior: Optional[np.ndarray]):
+        self._outputs = outputs
+        self._weights = weights
+        self._motion_methods = motion_methods     # indices of the methods that measure motion
+        self._fusion = fusion
+        self.shape = shape
+        self.motion_region = motion_region        # HxW float, detector-free regions (region_motion)
+        self.prior = prior                        # HxW float, the person-box prior
+        self._fused: Optional[tuple[Optional[np.ndarray]]] = None
+        self._motion: Optional[tuple[Optional[np.ndarray]]] = None
+
+    @property
+    def fused(self) -> Optional[np.ndarray]:
+        """Every method's mask fused (None if no method has a mask)."""
+        if self._fused is None:
+            self._fused = (fused_pixel_mask(self._outputs, self._fusion, self._weights, self.shape),)
+        return self._fused[0]
+
+    @property
+    def motion(self) -> Optional[np.ndarray]:
+        """The motion-measuring methods' masks fused (None if none has a mask)."""
+        if self._motion is None:
+            names = list(self._outputs)
+            self._motion = (fused_pixel_mask({names[k]: self._outputs[names[k]] for k in self._motion_methods},
+                                             self._fusion, [self._weights[k] for k in self._motion_methods],
+                                             self.shape),)
+        return self._motion[0]
+
+    def keep(self) -> "MaskParts":
+        """Compute both fused masks now and let go of the methods' outputs (a keyframe's record)."""
+        _ = self.fused, self.motion
+        self._outputs = {}
+        return self
+
+
+def fused_pixel_mask(outputs: dict[str, MethodOutput], mode: str, weights: list[float],
+                     shape: tuple[int, int]) -> Optional[np.ndarray]:
+    """The methods' pixel masks fused like their keypoint probabilities (None if none has a mask)."""
+    masks, used = [], []
+    for weight, out in zip(weights, outputs.values()):
+        if out.mask is not None and np.shape(out.mask) == tuple(shape):
+            masks.append(np.asarray(out.mask, np.float32).reshape(1, -1))
+            used.append(weight)
+    if not masks:
+        return None
+    mode = "max" if mode == "single" else mode
+    return fuse(masks, used, mode, masks[0].shape[1]).reshape(shape).astype(np.float32)
+
+
+def still_region(shape: tuple[int, int], boxes: list[Box], still) -> Optional[np.ndarray]:
+    """HxW bool: the boxes of the people standing still less every other person's box (a walker in
+    front of a standing person keeps all the evidence); None when nobody stands still."""
+    if not np.any(still):
+        return None
+    region = np.zeros(shape, bool)
+    for (x0, y0, x1, y1), k_still in zip(boxes, still):
+        if k_still:
+            region[y0:y1, x0:x1] = True
+    for (x0, y0, x1, y1), k_still in zip(boxes, still):
+        if not k_still:
+            region[y0:y1, x0:x1] = False
+    return region
+
+
+def compose_mask(parts: MaskParts, region: Optional[np.ndarray]) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+    """(mask of moving surfaces, pixels of people standing still) for a frame whose standing people
+    cover ``region``: there only the motion-measuring methods count, and what the fusion would have
+    flagged of them goes to the second mask (never mapped). Either may be None."""
+    mask = None if parts.fused is None else parts.fused.copy()
+    still_people = None
+    if mask is not None and region is not None:
+        still_people = (mask >= 0.5) & region
+        mask[region] = 0.0 if parts.motion is None else parts.motion[region]
+    if mask is not None and parts.motion_region is not None:
+        mask = np.maximum(mask, parts.motion_region)
+    if parts.prior is not None:
+        mask = parts.prior if mask is None else np.maximum(mask, parts.prior)
+    return mask, still_people
+
+
+@dataclass
+class _KeyframeRecord:
+    frame_index: int
+    timestamp: float
+    parts: MaskParts
+    boxes: list[Box]
+    tracks: list[object]       # per box: the RegionMotion track it belongs to (None: not followed)
+    still: np.ndarray          # per box: standing still, as known so far
+
+
+class KeyframeMaskLedger:
+    """The keyframes of the last window whose people may still turn out to have stood still."""
+
+    def __init__(self, window_s: float):
+        self.window_s = float(window_s)
+        self._records: list[_KeyframeRecord] = []
+
+    def reset(self) -> None:
+        self._records = []
+
+    def advance(self, timestamp: float, tracks: list[object], still: np.ndarray,
+                keyframe: Optional[tuple[int, MaskParts, list[Box]]]) -> list[RevisedMask]:
+        """After a frame: ``tracks`` and ``still`` per person of this frame (in box order); ``keyframe``
+        (frame index, mask parts, the people's boxes) when the frame is a keyframe. Returns the earlier
+        keyframes whose masks change because a person in them is now found standing still."""
+        confirmed = [t for t, s in zip(tracks, still) if s and t is not None]
+        # A stillness found now covers [timestamp - window, timestamp]; older keyframes are final.
+        self._records = [r for r in self._records if r.timestamp >= timestamp - self.window_s]
+        revised = []
+        for record in self._records:
+            newly = [k for k, t in enumerate(record.tracks)
+                     if not record.still[k] and t is not None and any(t is c for c in confirmed)]
+            if not newly:
+                continue
+            record.still[newly] = True
+            mask, still_people = compose_mask(record.parts, still_region(record.parts.shape, record.boxes, record.still))
+            if mask is not None:
+                revised.append(RevisedMask(record.frame_index, record.timestamp, mask, still_people))
+        if keyframe is not None and self.window_s > 0:
+            frame_index, parts, boxes = keyframe
+            if any(t is not None and not s for t, s in zip(tracks, still)):   # someone may yet turn out still
+                self._records.append(_KeyframeRecord(frame_index, timestamp, parts.keep(), list(boxes), list(tracks),
+                                                     np.array(still, bool)))
+        return revised

@@ -1,0 +1,108 @@
+"""Keyframe masks revised once a person in them is found standing still (frontend/dynamic/keyframe_masks.py),
+and the run's mask files rewritten (slam/run/run_artifacts.py)."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+
+from frontend.dynamic import RevisedMask
+from frontend.dynamic.base import MethodOutput
+from frontend.dynamic.keyframe_masks import KeyframeMaskLedger, MaskParts, compose_mask, still_region
+from frontend.dynamic.region_motion import RegionMotion
+from slam.run.run_artifacts import MASK_DIR, STILL_SUFFIX, RunArtifacts
+
+SHAPE = (48, 64)
+FPS = 30.0
+PERSON = (10, 8, 30, 40)         # x0, y0, x1, y1
+WALKER = (40, 8, 60, 40)
+
+
+def _box_mask(*boxes) -> np.ndarray:
+    mask = np.zeros(SHAPE, np.float32)
+    for x0, y0, x1, y1 in boxes:
+        mask[y0:y1, x0:x1] = 1.0
+    return mask
+
+
+def _parts(person_mask: np.ndarray, motion_mask: np.ndarray) -> MaskParts:
+    """A person-segmenting method (box_depth-like) and a motion-measuring one (cpr-like), fused by max."""
+    outputs = {"box_depth": MethodOutput(np.zeros(0), person_mask), "cpr": MethodOutput(np.zeros(0), motion_mask)}
+    return MaskParts(outputs, [1.0, 1.0], [1], "max", SHAPE, None, None)
+
+
+def test_in_a_standing_persons_box_only_motion_evidence_counts_and_a_walker_keeps_everything():
+    parts = _parts(_box_mask(PERSON, WALKER), np.zeros(SHAPE, np.float32))
+    region = still_region(SHAPE, [PERSON, WALKER], [True, False])
+    mask, still_people = compose_mask(parts, region)
+    assert not (mask[8:40, 10:30] >= 0.5).any()                    # the standing person left the mask
+    assert (mask[8:40, 40:60] >= 0.5).all()                        # the walker did not
+    assert still_people[8:40, 10:30].all() and still_people.sum() == 20 * 32   # ... and went to _still
+    assert still_region(SHAPE, [PERSON], [False]) is None
+    # A walker overlapping a standing person keeps the overlap.
+    overlap = still_region(SHAPE, [PERSON, (20, 8, 40, 40)], [True, False])
+    assert overlap[8:40, 10:20].all() and not overlap[8:40, 20:40].any()
+
+
+def _people_over(frames: int, motion: RegionMotion, ledger: KeyframeMaskLedger, keyframe_every: int = 5):
+    """One person standing 2 m in front of a still camera; a keyframe every ``keyframe_every`` frames.
+    Returns the revisions per frame and the still flag per frame."""
+    T = np.eye(4)
+    revisions, flags = [], []
+    for i in range(frames):
+        still = motion.classify([np.array([0.0, 0.0, 2.0])], T, i / FPS)
+        tracks = motion.commit(T)
+        keyframe = (i, _parts(_box_mask(PERSON), np.zeros(SHAPE, np.float32)), [PERSON]) \
+            if i % keyframe_every == 0 else None
+        revisions.append(ledger.advance(i / FPS, tracks, still, keyframe))
+        flags.append(bool(still[0]))
+    return revisions, flags
+
+
+def test_the_keyframes_of_the_first_window_are_revised_when_the_person_is_found_standing():
+    motion, ledger = RegionMotion(0.5, 0.15), KeyframeMaskLedger(0.5)
+    revisions, flags = _people_over(30, motion, ledger)
+    first_still = flags.index(True)
+    assert first_still == 15                                        # followed for 0.5 s at 30 fps
+    assert not any(revisions[:first_still])
+    revised = revisions[first_still]
+    assert [r.frame_index for r in revised] == [0, 5, 10]           # every keyframe of the window [0, 0.5 s]
+    for r in revised:
+        assert not (r.mask >= 0.5).any() and r.still_people.sum() == 20 * 32
+    # Each keyframe is revised once; keyframes made while the person is known to stand are never pending.
+    assert not any(revisions[first_still + 1:])
+
+
+def test_a_keyframe_older_than_the_window_and_another_persons_track_are_not_revised():
+    ledger = KeyframeMaskLedger(0.5)
+    other, person = object(), object()
+    parts = _parts(_box_mask(PERSON), np.zeros(SHAPE, np.float32))
+    assert ledger.advance(0.0, [person], np.array([False]), (0, parts, [PERSON])) == []
+    assert ledger.advance(0.4, [other], np.array([True]), None) == []          # not the keyframe's person
+    assert ledger.advance(0.6, [person], np.array([True]), None) == []         # keyframe 0 is 0.6 s old: final
+    ledger.reset()
+    assert ledger.advance(0.0, [person], np.array([False]), (3, parts, [PERSON])) == []
+    (revised,) = ledger.advance(0.5, [person], np.array([True]), None)
+    assert revised.frame_index == 3 and revised.timestamp == 0.0
+    # Off (still_window_s = 0): nothing is kept, nothing revised.
+    off = KeyframeMaskLedger(0.0)
+    assert off.advance(0.0, [person], np.array([False]), (0, parts, [PERSON])) == []
+    assert off.advance(0.1, [person], np.array([True]), None) == []
+
+
+def test_a_revision_rewrites_the_keyframes_mask_files(tmp_path):
+    artifacts = RunArtifacts(tmp_path, config=None, copy_keyframes=False)
+    full = _box_mask(PERSON)
+    frame = SimpleNamespace(index=7, depth=np.zeros(SHAPE, np.float32))
+    system = SimpleNamespace(revised_keyframe_masks=(), last_dynamic_mask=full, last_still_people_mask=None)
+    artifacts.on_frame(SimpleNamespace(is_keyframe=True), frame, system)
+    mask_path = tmp_path / MASK_DIR / f"{7:06d}.png"
+    still_path = tmp_path / MASK_DIR / f"{7:06d}{STILL_SUFFIX}.png"
+    assert (cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED) == 255 * full).all() and not still_path.exists()
+    revised = RevisedMask(7, 0.2, np.zeros(SHAPE, np.float32), full >= 0.5)
+    later = SimpleNamespace(revised_keyframe_masks=(revised,), last_dynamic_mask=None, last_still_people_mask=None)
+    artifacts.on_frame(SimpleNamespace(is_keyframe=False), SimpleNamespace(index=12), later)
+    assert not cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED).any()
+    assert (cv2.imread(str(still_path), cv2.IMREAD_UNCHANGED) == 255 * full).all()
+    assert sorted(p.name for p in (tmp_path / MASK_DIR).iterdir()) == [mask_path.name, still_path.name]
