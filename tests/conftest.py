@@ -16,16 +16,18 @@ import os
 import subprocess
 import sys
 import threading
+import warnings
 from pathlib import Path
 from typing import Optional, Sequence
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from backend.local_mapping import LocalMapper
 from slam.core.config import load_config
-from slam.datasets import SyntheticSequence
+from slam.datasets import SyntheticSequence, write_tum_layout
 from slam.datasets.synthetic import look_rotation
 from slam.core.geometry import invert, make_pose, so3_exp, transform_points
 
@@ -589,3 +591,54 @@ def run_ring(graph, n: int, seed: int = 0, drift_deg: float = 0.0):
         observe(graph, k, seen[k], np.flatnonzero((owner >= k - 2) & (owner <= k)), seen_points)
         graph.update()
     return poses, points, owner
+
+
+# --- fixtures shared by test modules split by topic (test_faults_*, test_cli_*, test_frontend_*) ------------
+
+@pytest.fixture
+def restore_warning_format(monkeypatch):
+    """main() installs its own warnings.formatwarning; keep it from leaking into other tests (modules that
+    call main() use it with ``pytestmark = pytest.mark.usefixtures("restore_warning_format")``)."""
+    monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)
+
+
+FAULT_TUM_FRAMES = 24
+
+
+@pytest.fixture(scope="module")
+def tum_folder(tmp_path_factory) -> Path:
+    """A generated room written as a TUM folder (lists, PNGs, camera.yaml, groundtruth.txt): what the
+    fault tests hurt; built once per module."""
+    return write_tum_layout(synthetic_sequence(FAULT_TUM_FRAMES), tmp_path_factory.mktemp("tum") / "synthetic_room")
+
+
+ORBIT_FRAMES = 30
+
+
+@pytest.fixture(scope="module")
+def orbit_sequence():
+    """The first frames of the seeded orbit sequence, rendered once per module: (frames, T_wc ground truth)."""
+    seq = SyntheticSequence(n_frames=ORBIT_FRAMES, path="orbit", seed=0)
+    _, gt = seq.groundtruth()
+    return list(seq), gt
+
+
+@pytest.fixture(scope="module")
+def default_config():
+    return load_config()
+
+
+@pytest.fixture(scope="module")
+def default_camera(default_config):
+    from slam.core.camera import PinholeCamera
+    return PinholeCamera.from_config(default_config.camera)
+
+
+@pytest.fixture(scope="module")
+def orbit_features(orbit_sequence, default_config, default_camera):
+    """ORB features of the orbit sequence's first three frames (default config)."""
+    from frontend.orb_extractor import OrbExtractor
+    frames, _ = orbit_sequence
+    extractor = OrbExtractor(default_config.orb, default_camera)
+    return [extractor.extract(cv2.cvtColor(f.rgb, cv2.COLOR_BGR2GRAY), f.depth, f.index, f.timestamp)
+            for f in frames[:3]]

@@ -1,4 +1,4 @@
-"""LocalWindowBackend beyond what it shares with FactorGraphBackend (tests/test_backend.py runs those
+"""LocalWindowBackend beyond what it shares with FactorGraphBackend (tests/test_backend_graph.py runs those
 tests on both): the window stays bounded on a long run, keyframes outside it stay put, a loop corrects
 every keyframe through the pose graph and the landmarks follow, and optimize_all solves the whole map."""
 from __future__ import annotations

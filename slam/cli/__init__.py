@@ -19,7 +19,7 @@ from slam.core.errors import EXIT_INTERRUPTED, EXIT_USAGE   # the CLI's exit cod
 from slam.run.sources import resolve_run_config  # noqa: F401  (re-exported; light: imports lazily)
 
 # = slam.datasets.synthetic_movers.MOVER_PRESETS, then slam.datasets.synthetic_scenes.HARD_SCENES (not imported:
-# --help stays light; tests/test_cli.py checks both lists)
+# --help stays light; tests/test_cli_options.py checks both lists)
 DEMO_MOVERS = ("none", "boxes", "people", "crowd", "drag", "close_pass", "three_close", "stand_walk", "border")
 MODEL_NAMES = ("yolox-nano", "nanodet-m")   # = slam.core.model_files.MODELS (not imported: --help stays light)
 TRAJECTORY_FORMAT_NAMES = ("tum", "kitti", "euroc")   # = slam.core.config.TRAJECTORY_FORMATS (not imported: --help stays light)
