@@ -147,7 +147,8 @@ class KeyframeMaskLedger:
             if not newly:
                 continue
             record.still[newly] = True
-            mask, still_people = compose_mask(record.parts, still_region(record.parts.shape, record.boxes, record.still))
+            region = still_region(record.parts.shape, record.boxes, record.still)
+            mask, still_people = compose_mask(record.parts, region)
             if mask is not None:
                 revised.append(RevisedMask(record.frame_index, record.timestamp, mask, still_people))
         if keyframe is not None and self.window_s > 0:

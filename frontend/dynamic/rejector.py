@@ -19,8 +19,7 @@ from frontend.dynamic import DynamicStats, RevisedMask
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.box_memory import BoxMemory
 from frontend.dynamic.fusion import fuse
-from frontend.dynamic.keyframe_masks import (KeyframeMaskLedger, MaskParts, compose_mask,
-                                              still_region)
+from frontend.dynamic.keyframe_masks import KeyframeMaskLedger, MaskParts, compose_mask, still_region
 from frontend.dynamic.region_motion import RegionCarry, RegionMotion, box_centre, confirmed_regions
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import DynamicConfig
@@ -185,9 +184,10 @@ class DynamicRejector:
     def _confirmed_motion(self, outputs: dict[str, MethodOutput], frame: FeatureFrame,
                           ctx: DynamicContext) -> Optional[np.ndarray]:
         """cpr's regions that flow_epipolar's tracks confirm (region_motion.confirmed_regions) where the
-        detector sees nobody, carried through a few frames of thin evidence (RegionCarry), or None. Inside a (dilated) person box the box methods segment the person
-        better; there a cpr region also holds the floor and wall around them, and flagging those costs
-        tracking its static points (generated crowds: close_pass 3.8 -> 4.0 mm, three_close 6.0 -> 7.1)."""
+        detector sees nobody, carried through a few frames of thin evidence (RegionCarry), or None.
+        Inside a (dilated) person box the box methods segment the person better; there a cpr region also
+        holds the floor and wall around them, and flagging those costs tracking its static points
+        (generated crowds: close_pass 3.8 -> 4.0 mm, three_close 6.0 -> 7.1)."""
         cpr, flow = outputs.get("cpr"), outputs.get("flow_epipolar")
         if self.cfg.motion_region_votes <= 0 or cpr is None or flow is None or cpr.mask is None \
                 or flow.tracks is None or not len(frame):
