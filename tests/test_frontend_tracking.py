@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from conftest import ORBIT_FRAMES as N_FRAMES
+from frontend.dynamic import StaticWorld
 from frontend.keyframe_policy import KeyframeEvidence, close_point_counts, keyframe_distances, need_keyframe
 from frontend.tracker import Tracker, TrackingState
 from slam.core.config import KeyframeConfig
@@ -132,28 +133,17 @@ def test_tracker_follows_the_orbit(orbit_sequence, default_config):
     assert np.linalg.norm(poses[:, :3, 3] - reference[:, :3, 3], axis=1).max() < 0.01
 
 
-class DynamicAt:
+class DynamicAt(StaticWorld):
     """A dynamic filter that marks every feature of the given frame indices dynamic (no pixel mask, so
-    no static refill: the frame must be lost)."""
+    no static refill: the frame must be lost); the rest of the DynamicFilter protocol is the null filter's."""
 
     name = "test_all_dynamic"
-    stats = None
-    last_mask = None
 
     def __init__(self, indices):
         self.indices = set(indices)
 
-    def begin_frame(self, rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw) -> None:
-        pass
-
     def process(self, frame: FeatureFrame, rgb, gray, depth, predicted_T_cw, last_T_cw) -> np.ndarray:
         return np.full(len(frame), 1.0 if frame.index in self.indices else 0.0)
-
-    def end_frame(self, T_cw, is_keyframe) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 def test_all_dynamic_frame_is_lost_not_given_a_pose(orbit_sequence, default_config):

@@ -147,6 +147,8 @@ def stand_walk_run(scenes):
             masks[frame.index] = system.last_dynamic_mask.copy()
     system.mapper.sync()
     system.close()
+    for revised in system.finish_keyframe_masks():
+        masks[revised.frame_index] = revised.mask.copy()
     return system, still, masks
 
 

@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import pytest
 
 from frontend.dynamic import RevisedMask
 from frontend.dynamic.base import MethodOutput
@@ -106,3 +107,72 @@ def test_a_revision_rewrites_the_keyframes_mask_files(tmp_path):
     assert not cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED).any()
     assert (cv2.imread(str(still_path), cv2.IMREAD_UNCHANGED) == 255 * full).all()
     assert sorted(p.name for p in (tmp_path / MASK_DIR).iterdir()) == [mask_path.name, still_path.name]
+
+
+class _FalsePersonOnTheWall:
+    """A detector that sees a 'person' on static structure for a few frames (what YOLOX-Nano did on
+    fr1/rpy's desk, frame 395, score 0.35) and nobody else: a box of fixed size around the image of a
+    fixed world point (the structure moves in the image as the camera moves, and the box with it)."""
+
+    def __init__(self, sequence, frames: range, size=(140, 280)):
+        first = sequence.frame(frames[0])
+        fx, fy, cx, cy = sequence.intrinsics
+        u, v = cx + 60, cy
+        z = float(first.depth[int(v), int(u)])
+        T_wc = sequence.pose(float(sequence.timestamps[frames[0]]))
+        self.point_w = T_wc[:3, :3] @ np.array([(u - cx) * z / fx, (v - cy) * z / fy, z]) + T_wc[:3, 3]
+        self.sequence, self.size = sequence, size
+        self.times = {float(sequence.timestamps[i]) for i in frames}
+
+    def box(self, timestamp: float) -> tuple[float, float, float, float]:
+        fx, fy, cx, cy = self.sequence.intrinsics
+        T_wc = self.sequence.pose(timestamp)
+        p = T_wc[:3, :3].T @ (self.point_w - T_wc[:3, 3])
+        u, v = cx + fx * p[0] / p[2], cy + fy * p[1] / p[2]
+        w, h = self.size
+        return u - w / 2, v - h / 2, u + w / 2, v + h / 2
+
+    def detect(self, bgr, timestamp: float = 0.0) -> list:
+        from frontend.dynamic.base import Detection
+        return [Detection(*self.box(float(timestamp)), 0, 0.35)] if float(timestamp) in self.times else []
+
+
+@pytest.mark.slow
+def test_a_false_detection_on_static_structure_leaves_the_final_masks():
+    """Tracking treats the short-lived box as a person at once (the safe side); once its track ends
+    without having moved, the keyframes it was in get their masks revised: masks/ marks moving surfaces."""
+    from slam.datasets import SyntheticSequence
+    from slam.run.dynamic_eval import synthetic_config
+    from slam.runtime.system import System
+
+    sequence = SyntheticSequence(n_frames=36, movers="none", seed=0)
+    detector = _FalsePersonOnTheWall(sequence, range(12, 18))
+    system = System(synthetic_config(sequence, preset="dynamic_all"), detector=detector, sequence_name="fp")
+    live, final, boxes = {}, {}, {}
+    for frame in sequence:
+        out = system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
+        for revised in system.revised_keyframe_masks:
+            final[revised.frame_index] = revised.mask
+        if out.is_keyframe and 12 <= frame.index < 18:
+            live[frame.index] = final[frame.index] = system.last_dynamic_mask.copy()
+            boxes[frame.index] = [int(v) for v in detector.box(frame.timestamp)]
+    system.close()
+    for revised in system.finish_keyframe_masks():
+        final[revised.frame_index] = revised.mask
+    assert live, "no keyframe while the false box was seen"
+    for index, mask in live.items():
+        x0, y0, x1, y1 = np.clip(boxes[index], 0, [640, 480, 640, 480])
+        assert (mask[y0:y1, x0:x1] >= 0.5).mean() > 0.5, index            # the live mask took it for a person
+        assert (final[index][y0:y1, x0:x1] >= 0.5).mean() < 0.05, index  # the final one does not
+
+
+def test_the_runs_end_revisions_are_written_too(tmp_path):
+    artifacts = RunArtifacts(tmp_path, config=None, copy_keyframes=False)
+    full = _box_mask(PERSON)
+    system = SimpleNamespace(revised_keyframe_masks=(), last_dynamic_mask=full, last_still_people_mask=None,
+                             localization_only=True)
+    artifacts.on_frame(SimpleNamespace(is_keyframe=True), SimpleNamespace(index=3, depth=full), system)
+    system.finish_keyframe_masks = lambda: [RevisedMask(3, 0.1, np.zeros(SHAPE, np.float32), full >= 0.5)]
+    artifacts.finish(system)
+    assert not cv2.imread(str(tmp_path / MASK_DIR / f"{3:06d}.png"), cv2.IMREAD_UNCHANGED).any()
+    assert cv2.imread(str(tmp_path / MASK_DIR / f"{3:06d}{STILL_SUFFIX}.png"), cv2.IMREAD_UNCHANGED).any()

@@ -229,3 +229,36 @@ def test_a_region_whose_own_tracks_stopped_moving_or_left_is_not_carried():
     # Inside a person box (not allowed) the box methods decide, not the carry.
     carry.update(confirmed, None, None, None, _person_frame(100), allowed)
     assert carry.update(None, origins, origins, moving, _person_frame(100), np.zeros_like(allowed)) is None
+
+
+# --- people followed for less than a window -------------------------------------------------------------
+
+def _short_track(motion: RegionMotion, positions: list[np.ndarray], start: int = 0) -> list:
+    """Feed one person for len(positions) frames (still camera), then a frame without them; returns the
+    ``ended_still`` of every commit."""
+    ended = []
+    for k, p_w in enumerate(positions + [None]):
+        motion.classify([] if p_w is None else [p_w], np.eye(4), (start + k) / FPS)
+        motion.commit(np.eye(4))
+        ended.append(list(motion.ended_still))
+    return ended
+
+
+def test_a_box_that_came_and_went_without_moving_is_still_over_its_life():
+    """A detection on something static (YOLOX-Nano's 'person' on fr1/rpy's desk) lasts a few frames: it
+    never reaches a whole window, and is judged over its own life when its track ends."""
+    rng = np.random.default_rng(6)
+    static = [np.array([0.3, 0.2, 1.5]) + rng.normal(0, 0.01, 3) for _ in range(6)]   # 0.17 s, 1 cm jitter
+    ended = _short_track(RegionMotion(0.5, 0.15), static)
+    assert not any(ended[:-1]) and len(ended[-1]) == 1        # judged when it ends, not before
+    # A slow walker (0.5 m/s) over the same life is not still; nor is a track too short to judge (0.1 s).
+    walker = [np.array([0.3 + 0.5 * k / FPS, 0.2, 1.5]) for k in range(6)]
+    assert not any(_short_track(RegionMotion(0.5, 0.15), walker))
+    assert not any(_short_track(RegionMotion(0.5, 0.15), static[:3]))
+    # Still going at the end of the run: finish() judges it the same way.
+    motion = RegionMotion(0.5, 0.15)
+    for k, p_w in enumerate(static):
+        motion.classify([p_w], np.eye(4), k / FPS)
+        motion.commit(np.eye(4))
+    assert len(motion.finish()) == 1
+    assert RegionMotion(0.0, 0.15).finish() == []

@@ -73,6 +73,11 @@ class DynamicFilter(Protocol):
         to be mapped); None when there are none."""
         ...
 
+    def finish_masks(self) -> Sequence[RevisedMask]:
+        """At the end of a run: earlier keyframes whose masks change now that the run has ended (a person
+        followed for less than a window who never moved)."""
+        ...
+
     def close(self) -> None:
         """Persist what is worth keeping (e.g. the detection cache)."""
         ...
@@ -95,6 +100,9 @@ class StaticWorld:
 
     def end_frame(self, T_cw, is_keyframe) -> None:
         return None
+
+    def finish_masks(self) -> Sequence[RevisedMask]:
+        return ()
 
     def close(self) -> None:
         return None

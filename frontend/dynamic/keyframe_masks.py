@@ -5,7 +5,9 @@ A person counts as moving until ``region_motion.RegionMotion`` has followed them
 (0.5 s) and seen them stay put: the safe side for tracking, which must decide at once. A mask is an
 output and can wait for the evidence. When a person is found still over the window ``[t - w, t]``, they
 stood still in every keyframe of that window too, so those keyframes' masks are composed again with the
-person standing (``KeyframeMaskLedger``), and the run's outputs rewrite them. Without this, the first
+person standing (``KeyframeMaskLedger``), and the run's outputs rewrite them. A person followed for less
+than a window is judged over its own life when the track ends (or the run does): a box that never moved
+is not a moving surface, however briefly it was seen. Without this, the first
 keyframes of a scene whose person stands were masked on the whole person (generated ``stand_walk``:
 precision 0.46, every false alarm on the standing person in the three keyframes before the window ended).
 Dense maps leave standing and moving people out alike, so a revision moves pixels between
@@ -14,7 +16,7 @@ Dense maps leave standing and moving people out alike, so a revision moves pixel
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -133,11 +135,13 @@ class KeyframeMaskLedger:
         self._records = []
 
     def advance(self, timestamp: float, tracks: list[object], still: np.ndarray,
-                keyframe: Optional[tuple[int, MaskParts, list[Box]]]) -> list[RevisedMask]:
+                keyframe: Optional[tuple[int, MaskParts, list[Box]]],
+                also_still: Sequence[object] = ()) -> list[RevisedMask]:
         """After a frame: ``tracks`` and ``still`` per person of this frame (in box order); ``keyframe``
-        (frame index, mask parts, the people's boxes) when the frame is a keyframe. Returns the earlier
-        keyframes whose masks change because a person in them is now found standing still."""
-        confirmed = [t for t, s in zip(tracks, still) if s and t is not None]
+        (frame index, mask parts, the people's boxes) when the frame is a keyframe; ``also_still``: tracks
+        found still over their whole (short) life as they ended (``RegionMotion.ended_still``). Returns
+        the earlier keyframes whose masks change because a person in them is now found standing still."""
+        confirmed = [t for t, s in zip(tracks, still) if s and t is not None] + list(also_still)
         # A stillness found now covers [timestamp - window, timestamp]; older keyframes are final.
         self._records = [r for r in self._records if r.timestamp >= timestamp - self.window_s]
         revised = []

@@ -82,6 +82,7 @@ class DynamicRejector:
         # Earlier keyframes' masks composed again after the last frame: a person in them was found
         # standing still (keyframe_masks); the run's outputs rewrite those keyframes' mask files.
         self.revised_masks: list[RevisedMask] = []
+        self._last_time: Optional[float] = None
 
     def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
                     predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> None:
@@ -251,11 +252,21 @@ class DynamicRejector:
         tracks = self._region_motion.commit(T_cw)
         boxes, still = self._people
         keyframe = (ctx.frame.index, self._mask_parts, boxes) if is_keyframe and self._mask_parts is not None else None
-        self.revised_masks = self._keyframe_masks.advance(ctx.frame.timestamp, tracks, still, keyframe)
+        self.revised_masks = self._keyframe_masks.advance(ctx.frame.timestamp, tracks, still, keyframe,
+                                                          self._region_motion.ended_still)
+        self._last_time = ctx.frame.timestamp
         for method in self.methods:
             with self.timer.measure(f"dynamic.{method.name}"):
                 method.end_frame(ctx, outputs[method.name], T_cw, is_keyframe)
         self._last = None
+
+    def finish_masks(self) -> list[RevisedMask]:
+        """At the end of a run: the keyframes whose masks change because a person still followed, for less
+        than a window, never moved (the run's end ends their track)."""
+        if self._last_time is None:
+            return []
+        return self._keyframe_masks.advance(self._last_time, [], np.zeros(0, bool), None,
+                                            self._region_motion.finish())
 
     def close(self) -> None:
         """Stop the threads and persist what is worth keeping (the detection cache)."""

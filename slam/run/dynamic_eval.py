@@ -147,6 +147,8 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
             fused = system.last_dynamic_mask
             fused = np.zeros(frame.dynamic_mask.shape, np.float32) if fused is None else fused
             keyframe_masks[frame.index] = (mask_to_png(fused), frame.dynamic_mask.astype(bool))
+    for revised in system.finish_keyframe_masks():
+        keyframe_masks[revised.frame_index] = (mask_to_png(revised.mask), keyframe_masks[revised.frame_index][1])
     for png, truth_mask in keyframe_masks.values():   # what masks/ holds at the end of the run
         masks.setdefault("fused", PixelCounts()).add(png.astype(np.float32) / 255.0, truth_mask)
     keep = np.concatenate(keeps)

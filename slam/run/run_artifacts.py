@@ -100,7 +100,10 @@ class RunArtifacts:
         write_text_atomic(folder / KEYFRAME_LIST, header + "\n".join(self._keyframe_rows) + "\n")
 
     def finish(self, system) -> None:
-        """At the end of a run: map.npz and map_sparse.ply (per ``config.export``)."""
+        """At the end of a run: the keyframe masks the run's end revises, map.npz and map_sparse.ply
+        (per ``config.export``)."""
+        for revised in system.finish_keyframe_masks():
+            self._write_masks(revised.frame_index, revised.mask, revised.still_people)
         if system.localization_only or system.mapper.map.num_keyframes == 0:
             return   # a localisation run builds no map of its own
         export = self.config.export

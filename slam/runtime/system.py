@@ -156,6 +156,11 @@ class System:
         still; frontend/dynamic/keyframe_masks.py): outputs rewrite their ``masks/`` files."""
         return self.dynamic_filter.revised_masks
 
+    def finish_keyframe_masks(self) -> Sequence[RevisedMask]:
+        """At the end of a run (after ``close`` too): earlier keyframes whose masks change now that the
+        run has ended (frontend/dynamic/keyframe_masks.py); outputs rewrite their ``masks/`` files."""
+        return self.dynamic_filter.finish_masks()
+
     def place_recognition_report(self) -> tuple[list[dict], dict]:
         """(loops with their keyframes' timestamps, counts and ms per keyframe / per relocalization)."""
         return self.tracking.place_recognition_report()
