@@ -115,27 +115,3 @@ def test_close_pass_person_stays_masked_while_the_detector_misses_them():
         recall[hold] = (hits / total, hits / max(hits + false, 1))
     assert recall[0][0] < 0.2
     assert recall[5][0] >= 0.9 and recall[5][1] >= 0.9, recall
-
-
-def _depth_with(box: Detection, person_m: float, background_m: float = 4.0) -> np.ndarray:
-    depth = np.full((480, 640), background_m, np.float32)
-    depth[int(box.y0):int(box.y1), int(box.x0):int(box.x1)] = person_m
-    return depth
-
-
-def test_a_held_box_that_slid_off_the_person_is_dropped():
-    """The torso depth of the last detection travels with a held box; a box whose middle third shows
-    another surface (the person left it, or the camera turned under the extrapolation) is dropped."""
-    boxes = memory(hold=5)
-    boxes.update([person(100)], _depth_with(person(100), 2.0))
-    boxes.update([person(110)], _depth_with(person(110), 2.0))
-    # Missed, and the person is where the box expects them (moved 0.3 m nearer): held.
-    assert [corners(d) for d in boxes.update([], _depth_with(person(120), 1.7))] == [corners(person(120))]
-    # Missed again, and the box's middle third now shows the wall behind: dropped for good.
-    assert boxes.update([], _depth_with(person(300), 2.0)) == []
-    assert boxes.update([], _depth_with(person(140), 2.0)) == []
-    # Without depth (or none valid in the box) nothing can be checked: held, the safe side.
-    boxes = memory(hold=5)
-    boxes.update([person(100)], _depth_with(person(100), 2.0))
-    assert len(boxes.update([], np.zeros((480, 640), np.float32))) == 1
-    assert len(boxes.update([])) == 1

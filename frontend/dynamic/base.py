@@ -107,26 +107,3 @@ def keypoints_in_mask(mask: np.ndarray, uv_raw: np.ndarray) -> np.ndarray:
     cols = np.clip(np.rint(uv_raw[:, 0]).astype(int), 0, w - 1)
     rows = np.clip(np.rint(uv_raw[:, 1]).astype(int), 0, h - 1)
     return mask[rows, cols]
-
-
-TORSO_PIXEL_STEP = 2
-"""Every 2nd pixel in each direction of a box's middle third (a 200 x 400 px person: ~2 000 pixels)."""
-
-
-def torso_grid(box: tuple[int, int, int, int], step: int = TORSO_PIXEL_STEP) -> tuple[np.ndarray, np.ndarray]:
-    """Rows and columns sampling the middle third (width and height) of a person's box (x0, y0, x1, y1
-    whole pixels): the torso, which a person's box centres on whatever their pose."""
-    x0, y0, x1, y1 = box
-    w, h = x1 - x0, y1 - y0
-    return np.arange(y0 + h // 3, y1 - h // 3, step), np.arange(x0 + w // 3, x1 - w // 3, step)
-
-
-def torso_depth(box: tuple[int, int, int, int], depth: np.ndarray) -> Optional[float]:
-    """Median valid depth (m) of the box's middle third (``torso_grid``); None without depth there."""
-    rows, cols = torso_grid(box)
-    rows, cols = rows[(rows >= 0) & (rows < depth.shape[0])], cols[(cols >= 0) & (cols < depth.shape[1])]
-    if not len(rows) or not len(cols):
-        return None
-    z = depth[np.ix_(rows, cols)]
-    z = z[z > 0]
-    return float(np.median(z)) if len(z) else None

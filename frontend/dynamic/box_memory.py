@@ -8,31 +8,18 @@ multi-object tracker does, a box that finds no successor in the next frame's det
 few frames, moved on by the velocity of its corners over its last two detections (so an approaching
 person's box keeps growing); a detection that overlaps it again takes over. Detections of other classes
 pass through untouched.
-
-A held box is only a guess about the image, so it is checked against the depth: the person's torso
-depth (the median depth of the box's middle third) is kept from their last detection, and a held box
-whose middle third now lies at another depth is dropped: the person walked out of it, or the camera
-turned and the extrapolated box slid off them, and box_depth and depth_sdf would segment whatever lies
-there now as a person. It happens: on fr1/rpy-400 12 held boxes (the man behind the monitors, at
-1.2-2.5 m, during fast turns) and on Bonn crowd-480 12 showed a surface 0.6-2.1 m off the person's depth.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 
-from frontend.dynamic.base import Detection, torso_depth
+from frontend.dynamic.base import Detection
 
 MIN_MATCH_IOU = 0.3
 """A new detection continues a held box when they overlap this much (a walking person's box moves a
 fraction of its width per frame at 30 Hz; two different people rarely overlap this much)."""
-HOLD_DEPTH_TOLERANCE_M = 0.5
-"""A held box stays while its middle third's median depth is within this of the person's last torso
-depth: 5 frames at 2 m/s towards the camera (0.33 m) plus the median landing on an arm instead of the
-torso (~0.15 m); far below the gap between a person and the surface in front of or behind them that a
-wrongly extrapolated box would show."""
 
 
 @dataclass
@@ -41,7 +28,6 @@ class _HeldBox:
     velocity: np.ndarray    # (4,) corner motion per frame
     class_id: int
     score: float
-    depth: Optional[float] = None   # torso depth (m) at the last detection, None without depth
     missed: int = 0         # frames since then
 
     def predicted(self) -> np.ndarray:
@@ -71,9 +57,8 @@ class BoxMemory:
         self.width, self.height = width, height
         self._held: list[_HeldBox] = []
 
-    def update(self, detections: list[Detection], depth: Optional[np.ndarray] = None) -> list[Detection]:
-        """This frame's detections plus the held boxes no detection continued (and, with ``depth``,
-        whose middle third still lies at the person's depth)."""
+    def update(self, detections: list[Detection]) -> list[Detection]:
+        """This frame's detections plus the held boxes no detection continued."""
         if self.hold_frames <= 0:
             return detections
         tracked = [d for d in detections if d.class_id in self.classes]
@@ -83,8 +68,7 @@ class BoxMemory:
         for i, detection in enumerate(tracked):
             before = continued.get(i)
             velocity = np.zeros(4) if before is None else (new[i] - before.seen) / (before.missed + 1)
-            next_held.append(_HeldBox(new[i], velocity, detection.class_id, detection.score,
-                                      self._depth(new[i], depth)))
+            next_held.append(_HeldBox(new[i], velocity, detection.class_id, detection.score))
         taken = {id(box) for box in continued.values()}
         for box in self._held:
             if id(box) in taken or box.missed >= self.hold_frames:
@@ -92,20 +76,10 @@ class BoxMemory:
             clipped = np.clip(box.predicted(), 0, [self.width, self.height, self.width, self.height])
             if clipped[2] - clipped[0] < 1 or clipped[3] - clipped[1] < 1:
                 continue   # moved out of the image
-            now = self._depth(clipped, depth)
-            if box.depth is not None and now is not None and abs(now - box.depth) > HOLD_DEPTH_TOLERANCE_M:
-                continue   # the box slid off the person: something else lies there
-            next_held.append(_HeldBox(box.seen, box.velocity, box.class_id, box.score, box.depth, box.missed + 1))
+            next_held.append(_HeldBox(box.seen, box.velocity, box.class_id, box.score, box.missed + 1))
             carried.append(Detection(*map(float, clipped), box.class_id, box.score))
         self._held = next_held
         return list(detections) + carried
-
-    @staticmethod
-    def _depth(box: np.ndarray, depth: Optional[np.ndarray]) -> Optional[float]:
-        if depth is None:
-            return None
-        x0, y0, x1, y1 = (int(v) for v in np.round(box))
-        return torso_depth((x0, y0, x1, y1), depth)
 
     def _match(self, new: np.ndarray, classes: list[int]) -> dict[int, _HeldBox]:
         """Greedy best-IoU pairs (same class, IoU >= MIN_MATCH_IOU): new detection index -> held box."""

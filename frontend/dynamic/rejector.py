@@ -129,7 +129,7 @@ class DynamicRejector:
                     ctx.detections = begun.detection.result()
                 else:
                     ctx.detections = self.detector.detect(rgb, frame.timestamp)
-                ctx.detections = self._box_memory.update(ctx.detections, ctx.depth)
+                ctx.detections = self._box_memory.update(ctx.detections)
         # The methods without threaded work first, while the threaded ones (cpr) may still run; the
         # methods are independent, so the order changes no output, and they are fused in config order.
         outputs: dict[str, MethodOutput] = {}
