@@ -20,7 +20,6 @@ from conftest import synthetic_config, synthetic_sequence
 from slam.datasets.synthetic_scenes import HARD_SCENES, MISS_COVERAGE, HardScene
 from frontend.dynamic.base import keypoints_in_mask
 from slam.run.dynamic_eval import evaluate_synthetic, scene_detector
-from slam.runtime.system import System
 
 FRAMES = 150
 MAX_FRAME_ERROR_M = 0.05     # the issue's bar: a tracked frame further off than this should have been LOST
@@ -115,12 +114,31 @@ _NOT_YET = {
 }
 
 
+@pytest.fixture(scope="module")
+def scene_runs(scenes):
+    """Each scene run once under the default config (lazily), shared by the tests that look at it:
+    name -> (SceneEvaluation, per-frame people standing still, the closed System)."""
+    runs = {}
+
+    def run(name: str):
+        if name not in runs:
+            scene, still, systems = scenes[name], [], []
+
+            def observe(frame, output, system):
+                still.append(system.dynamic_filter.people_still)
+                systems[:] = [system]
+
+            result = evaluate_synthetic(scene, synthetic_config(scene, preset="dynamic_all"),
+                                        detector=scene_detector(scene, margin_px=8), observer=observe)
+            runs[name] = (result, still, systems[0])
+        return runs[name]
+    return run
+
+
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=_NOT_YET[n], strict=True))
                                   if n in _NOT_YET else n for n in HARD_SCENES])
-def test_slam_on_hard_scene_stays_near_the_clean_path(name, scenes, clean_ate):
-    scene = scenes[name]
-    result = evaluate_synthetic(scene, synthetic_config(scene, preset="dynamic_all"),
-                                detector=scene_detector(scene, margin_px=8))
+def test_slam_on_hard_scene_stays_near_the_clean_path(name, scene_runs, clean_ate):
+    result = scene_runs(name)[0]
     assert result.max_error <= MAX_FRAME_ERROR_M, f"a tracked frame is {result.max_error:.3f} m off"
     assert result.ate_rmse <= MAX_ATE_RATIO * clean_ate, \
         f"ATE {result.ate_rmse:.4f} m vs {clean_ate:.4f} m without people"
@@ -130,25 +148,12 @@ SILHOUETTE_PX = 3   # ORB corners on a silhouette mix person and background: lef
 
 
 @pytest.fixture(scope="module")
-def stand_walk_run(scenes):
-    """stand_walk under the default config: the system (closed) and, per frame, how many people the
-    front end found standing still and, per keyframe, its fused mask as ``masks/`` holds it at the end
-    (revised once the person is found standing)."""
-    scene = scenes["stand_walk"]
-    system = System(synthetic_config(scene, preset="dynamic_all"), detector=scene_detector(scene, margin_px=8),
-                    sequence_name=scene.name)
-    still, masks = [], {}
-    for frame in scene:
-        out = system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
-        still.append(system.dynamic_filter.people_still)
-        for revised in system.revised_keyframe_masks:
-            masks[revised.frame_index] = revised.mask.copy()
-        if out.is_keyframe:
-            masks[frame.index] = system.last_dynamic_mask.copy()
-    system.mapper.sync()
-    system.close()
-    for revised in system.finish_keyframe_masks():
-        masks[revised.frame_index] = revised.mask.copy()
+def stand_walk_run(scene_runs):
+    """stand_walk under the default config (the run the ATE test made): the system (closed) and, per
+    frame, how many people the front end found standing still and, per keyframe, its fused mask as
+    ``masks/`` holds it at the end (revised once the person is found standing)."""
+    result, still, system = scene_runs("stand_walk")
+    masks = {index: png.astype(np.float32) / 255.0 for index, png in result.final_masks.items()}
     return system, still, masks
 
 

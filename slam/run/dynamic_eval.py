@@ -9,6 +9,7 @@ left out: ORB corners sit on silhouettes, where the label of the rounded pixel i
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -109,6 +110,7 @@ class SceneEvaluation:
     errors: np.ndarray
     lost_frames: list[int]
     keyframes: int
+    final_masks: dict[int, np.ndarray] = field(default_factory=dict)   # frame index -> 8-bit, as masks/ holds it
 
     def mask_table(self) -> str:
         lines = ["| method | mask precision | mask recall |", "|---|---|---|"]
@@ -117,9 +119,11 @@ class SceneEvaluation:
 
 
 def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary_px: int = 3,
-                       detector=None) -> SceneEvaluation:
+                       detector=None, observer: Optional[Callable] = None) -> SceneEvaluation:
     """Run ``System`` on ``sequence`` (a ``SyntheticSequence`` or ``HardScene``) with ``detector``
-    (default: its ground-truth boxes) and measure classification, keyframe masks and trajectory."""
+    (default: its ground-truth boxes) and measure classification, keyframe masks and trajectory.
+    ``observer(frame, output, system)``, if given, sees every frame after it is processed (tests that
+    need more of the same run than these measures; the system is closed at the end, its map kept)."""
     from slam.run.evaluation import ate
 
     detector = synthetic_oracle(sequence) if detector is None else detector
@@ -147,6 +151,8 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
             fused = system.last_dynamic_mask
             fused = np.zeros(frame.dynamic_mask.shape, np.float32) if fused is None else fused
             keyframe_masks[frame.index] = (mask_to_png(fused), frame.dynamic_mask.astype(bool))
+        if observer is not None:
+            observer(frame, out, system)
     for revised in system.finish_keyframe_masks():
         keyframe_masks[revised.frame_index] = (mask_to_png(revised.mask), keyframe_masks[revised.frame_index][1])
     for png, truth_mask in keyframe_masks.values():   # what masks/ holds at the end of the run
@@ -161,7 +167,8 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
     gt_t, gt_poses = sequence.groundtruth()
     result = ate(gt_t, gt_poses, stamps[tracked], poses[tracked])
     evaluation = SceneEvaluation(scores, masks, result.rmse, result.max, result.errors,
-                                 [int(i) for i in np.flatnonzero(~tracked)], system.num_keyframes)
+                                 [int(i) for i in np.flatnonzero(~tracked)], system.num_keyframes,
+                                 {i: png for i, (png, _) in keyframe_masks.items()})
     system.close()
     return evaluation
 
