@@ -241,6 +241,20 @@ def lap_pose(i: int) -> np.ndarray:
     return T
 
 
+def walk_laps(system, seq, n_frames: int) -> np.ndarray:
+    """Feed ``system`` the first ``n_frames`` of the lap path (``lap_pose``) rendered from ``seq`` at
+    30 Hz; returns the true poses. Ends with the worker's last update landed: the tests edit and compare
+    the settled graph."""
+    gt = []
+    for i in range(n_frames):
+        T = lap_pose(i)
+        rgb, depth = seq.render(T, 0.0)
+        system.process(rgb, depth, i / 30.0, i)
+        gt.append(T)
+    system.mapper.sync()
+    return np.array(gt)
+
+
 def inject_drift(monkeypatch) -> None:
     R = Rotation.from_euler("y", DRIFT_DEG, degrees=True).as_matrix()   # camera y = vertical: a heading error
     create = LocalMapper._create_landmarks

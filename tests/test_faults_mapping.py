@@ -14,8 +14,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from _fault_helpers import frame_lines
-from conftest import (PERIOD, drift_room_config, inject_drift, lap_pose, read_summary, synthetic_config,
-                      synthetic_sequence)
+from conftest import (PERIOD, drift_room_config, inject_drift, read_summary, synthetic_config, synthetic_sequence,
+                      walk_laps)
 from slam.cli import main
 from slam.datasets import write_tum_layout
 from slam.run.evaluation import ate
@@ -81,14 +81,8 @@ def drift_walk():
     with pytest.MonkeyPatch.context() as mp:
         inject_drift(mp)
         system = System(drift_room_config(True))
-        gt = []
-        for i in range(PERIOD + 40):
-            T = lap_pose(i)
-            rgb, depth = seq.render(T, 0.0)
-            system.process(rgb, depth, i / 30.0, i)
-            gt.append(T)
-    system.mapper.sync()   # a worker's last update lands: the tests edit and compare the settled graph
-    return system, np.array(gt)
+        gt = walk_laps(system, seq, PERIOD + 40)
+    return system, gt
 
 
 @pytest.mark.slow

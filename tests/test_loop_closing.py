@@ -13,14 +13,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from backend.local_mapping import LocalMapper
-from slam.core.config import KeyframeConfig, load_config
+from slam.core.config import KeyframeConfig
 from slam.datasets import SyntheticSequence
-from slam.datasets.synthetic import look_rotation
 from slam.run.evaluation import ate
 from slam.runtime.system import System
 
-from conftest import LAPS, PERIOD, drift_room_config as _config, inject_drift as _inject_drift, lap_pose, report_figures
+from conftest import (LAPS, PERIOD, drift_room_config as _config, inject_drift as _inject_drift, report_figures,
+                      walk_laps)
 
 
 def _walk(loop: bool, revisit_ratio: float = 0.0) -> tuple[System, np.ndarray]:
@@ -32,14 +31,7 @@ def _walk(loop: bool, revisit_ratio: float = 0.0) -> tuple[System, np.ndarray]:
     config = _config(loop)
     system = System(config.model_copy(update={"keyframes": config.keyframes.model_copy(
         update={"revisit_ratio": revisit_ratio})}))
-    gt = []
-    for i in range(LAPS * PERIOD):
-        T = lap_pose(i)
-        rgb, depth = seq.render(T, 0.0)
-        system.process(rgb, depth, i / 30.0, i)
-        gt.append(T)
-    system.mapper.sync()   # a worker's last update lands: the tests edit and compare the settled graph
-    return system, np.array(gt)
+    return system, walk_laps(system, seq, LAPS * PERIOD)
 
 
 @pytest.fixture(scope="module")
