@@ -65,3 +65,27 @@ def test_system_example_runs_on_a_generated_frame():
     names = {"CAMERA": camera, "bgr": frame.rgb, "depth_m": frame.depth, "t": frame.timestamp}
     exec(compile(block, "README.md", "exec"), names)   # noqa: S102
     assert names["out"].T_wc is not None and names["tracked"].all() and len(names["stamps"]) == 1
+
+
+def test_lookahead_example_runs_on_generated_frames():
+    """The README's lookahead call: frame 1 announces frame 2, whose begun work the next call takes."""
+    first = next(b for b in readme_python_blocks() if "System(load_config" in b)
+    block = next(b for b in readme_python_blocks() if "UpcomingFrame(" in b)
+    from slam.datasets import SyntheticSequence
+
+    seq = SyntheticSequence(n_frames=3)
+    fx, fy, cx, cy = seq.intrinsics
+    f0, f1, f2 = (seq.frame(i) for i in range(3))
+    camera = {"camera.fx": fx, "camera.fy": fy, "camera.cx": cx, "camera.cy": cy, "camera.distortion": [0.0] * 5}
+    first = first.replace('load_config("tum_fr1")', 'load_config("tum_fr1", overrides=CAMERA)')
+    names = {"CAMERA": camera, "bgr": f0.rgb, "depth_m": f0.depth, "t": f0.timestamp}
+    exec(compile(first, "README.md", "exec"), names)   # noqa: S102
+    names.update(bgr=f1.rgb, depth_m=f1.depth, t=f1.timestamp, index=1, next_bgr=f2.rgb, next_depth_m=f2.depth,
+                 next_t=f2.timestamp)
+    exec(compile(block, "README.md", "exec"), names)   # noqa: S102
+    system = names["system"]
+    assert system._lookahead._begun.index == 2       # begun, waiting for its call
+    out = system.process(f2.rgb, f2.depth, f2.timestamp, 2)
+    assert system._lookahead._begun is None          # taken by it
+    system.close()
+    assert names["out"].T_wc is not None and out.T_wc is not None

@@ -7,6 +7,7 @@ rejected.
 """
 from __future__ import annotations
 
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,7 +68,9 @@ class DynamicRejector:
         # loops do. Same computation, same order, so the same bits; measured on Bonn crowd (extraction +
         # cpr, 150 frames): 33 -> 23 ms per frame of wall time, the same CPU time.
         self._prepare_thread: Optional[ThreadPoolExecutor] = None
-        self._begun: Optional[_BegunFrame] = None
+        # Begun, not yet processed, oldest first: the frame being processed and, with the System's
+        # lookahead, the next one (begun while this one is tracked; each thread takes them in order).
+        self._begun: deque[_BegunFrame] = deque()
         self._box_memory = BoxMemory(cfg.detector.hold_frames, set(cfg.classes.dynamic), camera.width, camera.height)
         self._region_motion = RegionMotion(cfg.still_window_s, cfg.still_max_move_m)
         # A confirmed motion region is carried through thin-evidence frames as long as a lost box is held.
@@ -86,7 +89,6 @@ class DynamicRejector:
 
     def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
                     predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> None:
-        self._finish_begun()
         ctx = DynamicContext(None, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
         detection = prepared = None
         if self.detector is not None:
@@ -98,31 +100,35 @@ class DynamicRejector:
             if self._prepare_thread is None:
                 self._prepare_thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-dynamic")
             prepared = self._prepare_thread.submit(self._prepare, threaded, ctx)
-        self._begun = _BegunFrame(timestamp, ctx, detection, prepared)
+        self._begun.append(_BegunFrame(timestamp, ctx, detection, prepared))
 
     def _prepare(self, methods: list[DynamicMethod], ctx: DynamicContext) -> None:
         for method in methods:
             with self.timer.measure(f"dynamic.{method.name}"):
                 method.prepare(ctx)
 
-    def _finish_begun(self) -> None:
-        """A frame begun but never processed (its extraction failed): let its work end before the next
-        frame's starts, so no method ever runs on two frames at once; its results are dropped."""
-        begun, self._begun = self._begun, None
-        for future in (() if begun is None else (begun.detection, begun.prepared)):
-            if future is not None:
-                future.exception()   # waits; a dropped frame's failure is not the next frame's
+    def _take_begun(self, timestamp: float, gray: np.ndarray) -> Optional[_BegunFrame]:
+        """The frame's begun work; frames begun before it but never processed (their extraction failed)
+        end first, so no method ever runs on two frames at once; their results are dropped. None (and
+        nothing left running) when the frame was not begun."""
+        while self._begun:
+            begun = self._begun.popleft()
+            if begun.timestamp == timestamp and begun.ctx.gray is gray:
+                return begun
+            for future in (begun.detection, begun.prepared):
+                if future is not None:
+                    future.exception()   # waits; a dropped frame's failure is not the next frame's
+        return None
 
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
-        if self._begun is not None and self._begun.timestamp != frame.timestamp:
-            self._finish_begun()       # begun for another frame: this one is computed here, in line
-        begun, self._begun = self._begun, None
+        begun = self._take_begun(frame.timestamp, gray)
+        # The frame's own context: a frame begun one ahead was prepared with a prediction from the frame
+        # before the last; what runs now sees the last frame's (the threads may still read the other).
         ctx = DynamicContext(frame, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
         prepared = None
         if begun is not None:
-            ctx, prepared = begun.ctx, begun.prepared
-            ctx.frame = frame
+            prepared = begun.prepared
         if self.detector is not None:  # built only when a method or the box prior needs it
             with self.timer.measure("dynamic.detector"):   # with begin_frame: the wait for the thread
                 if begun is not None and begun.detection is not None:
@@ -270,7 +276,7 @@ class DynamicRejector:
 
     def close(self) -> None:
         """Stop the threads and persist what is worth keeping (the detection cache)."""
-        self._finish_begun()
+        self._take_begun(float("nan"), np.zeros(0))   # waits for (and drops) frames begun, never processed
         for pool in (self._detect_thread, self._prepare_thread):
             if pool is not None:
                 pool.shutdown(wait=True)

@@ -56,7 +56,7 @@ from slam.datasets.replay import RealtimeReplay
 from slam.run.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
 from slam.run.input_checks import InputChecks
 from slam.run.interrupts import DeferredInterrupt
-from slam.runtime.system import FrameOutput, System
+from slam.runtime.system import FrameOutput, System, UpcomingFrame
 from slam.core.atomic_io import ensure_output_dir, write_text_atomic
 from slam.run.run_artifacts import RunArtifacts, needs_keyframe_copies
 from slam.run.trajectory import TumStreamWriter, format_tum_line, tum_rows_from_poses, write_tum
@@ -210,18 +210,26 @@ class Pipeline:
             getattr(frames, "close", lambda: None)()
 
     def _track_frames(self, frames, interrupt: DeferredInterrupt, online: TumStreamWriter) -> None:
+        # A dataset is read one frame ahead, so that frame's image work runs while this one is tracked
+        # (slam/runtime/lookahead.py); a live source in realtime mode is never waited on for a frame ahead.
+        lookahead = not self.config.runtime.realtime
+        queued = None
         # Checked before the next frame is read, not after: a live camera is not waited on again once
         # the run is over (and a recording reads no frame it will not use).
         while not self._stop_before_next(interrupt):
-            frame = next(frames, None)
+            frame, queued = (queued, None) if queued is not None else (self._read_accepted(frames, interrupt), None)
             if frame is None:
-                self._stop_before_next(interrupt)   # a Ctrl-C while the last read ended still counts
                 break
-            if not self.checks.accept(frame):
-                continue
-            self.checks.observe_depth(frame)
+            read_error = None
+            if lookahead and (self.max_frames is None or self.summary.frames + 1 < self.max_frames):
+                try:
+                    queued = self._read_accepted(frames, interrupt)
+                except Exception as exc:   # the frame ahead is unreadable: this one is still processed first
+                    read_error = exc
+            upcoming = None if queued is None else UpcomingFrame(queued.rgb, queued.depth, queued.timestamp,
+                                                                 queued.index)
             t0 = time.perf_counter()
-            out = self.system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
+            out = self.system.process(frame.rgb, frame.depth, frame.timestamp, frame.index, upcoming)
             self._record(out, online)
             self.artifacts.on_frame(out, frame, self.system)
             self.dynamic_strip.observe(self.summary.frames - 1, frame.rgb, self.system.last_frame,
@@ -230,6 +238,17 @@ class Pipeline:
                 observer.on_frame(frame, out, self.system)
             if self.progress is not None:
                 self.progress(out, time.perf_counter() - t0)
+            if read_error is not None:
+                raise read_error
+
+    def _read_accepted(self, frames, interrupt: DeferredInterrupt):
+        """The next frame the input checks accept (None at the end of the input)."""
+        for frame in frames:
+            if self.checks.accept(frame):
+                self.checks.observe_depth(frame)
+                return frame
+        self._stop_before_next(interrupt)   # a Ctrl-C while the last read ended still counts
+        return None
 
     def _stop_before_next(self, interrupt: DeferredInterrupt) -> bool:
         if self.max_frames is not None and self.summary.frames >= self.max_frames:

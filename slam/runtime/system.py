@@ -34,9 +34,10 @@ from slam.core.geometry import invert
 from slam.core.timing import ModuleTimer
 from slam.runtime.graph_process import GraphProcess, GraphSpec
 from slam.runtime.inputs import check_inputs, clean_depth
+from slam.runtime.lookahead import FrameLookahead, UpcomingFrame
 from slam.runtime.tracking_loop import FrameOutput, TrackingLoop
 
-__all__ = ["FrameOutput", "System"]
+__all__ = ["FrameOutput", "System", "UpcomingFrame"]
 
 
 def _graph_process(config: SlamConfig, camera: PinholeCamera) -> GraphProcess:
@@ -59,6 +60,7 @@ class System:
         self.camera = PinholeCamera.from_config(config.camera)
         self.extractor = OrbExtractor(config.orb, self.camera)
         self.timer = ModuleTimer()
+        self._lookahead = FrameLookahead(config.orb, self.camera, self.timer)
         self.dynamic_filter = dynamic_filter or build_dynamic_filter(config, self.camera, self.timer, sequence_name,
                                                                      detector)
         # A worker process only where the graph will be solved: a fixed prior map is only read.
@@ -95,19 +97,34 @@ class System:
                 self.loop_closer.detector.index_keyframe(self.mapper.map, kf.id)
 
     # --- public -----------------------------------------------------------------------------------
-    def process(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, index: Optional[int] = None) -> FrameOutput:
+    def process(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, index: Optional[int] = None,
+                upcoming: Optional[UpcomingFrame] = None) -> FrameOutput:
+        """Track one frame. ``upcoming``: the frame the next call will get, if known (a dataset); its
+        features and image-only dynamic work then run on threads while this frame is tracked
+        (slam/runtime/lookahead.py). The result is the same however the threads are scheduled."""
         check_inputs(rgb, depth, timestamp, self.camera.width, self.camera.height)
         index = len(self.tracking.frames) if index is None else index
-        depth = clean_depth(depth)   # NaN / inf / negative (float depth's "no measurement") -> 0 = invalid
+        begun = self._lookahead.take(timestamp, index)
+        if begun is not None:
+            rgb, depth = begun.rgb, begun.depth
+        else:
+            depth = clean_depth(depth)   # NaN / inf / negative (float depth's "no measurement") -> 0 = invalid
         self._apply_arrived_results()   # before anything uses the predicted pose
-        with self.timer.measure("extract"):
-            gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
         tracker = self.tracking.tracker
         predicted_T_cw, last_T_cw = tracker.predicted_T_cw(), tracker.last_T_cw
-        # The image-only dynamic work (detector, cpr) runs on threads while the features are extracted.
-        self.dynamic_filter.begin_frame(rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw)
+        if begun is None:
+            with self.timer.measure("extract"):
+                gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
+            # The image-only dynamic work (detector, cpr) runs on threads while the features are extracted.
+            self.dynamic_filter.begin_frame(rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw)
+        else:
+            gray = begun.gray
+        if upcoming is not None and not self.realtime:
+            # Begun after this frame's own work, so every thread takes the frames in order.
+            self._lookahead.begin(upcoming, self.dynamic_filter, tracker.predicted_T_cw(2), last_T_cw)
         with self.timer.measure("extract"):
-            frame = self.extractor.extract(gray, depth, index, timestamp)
+            frame = begun.features.result() if begun is not None else self.extractor.extract(gray, depth, index,
+                                                                                               timestamp)
         with self.timer.measure("dynamic"):
             probs = self.dynamic_filter.process(frame, rgb, gray, depth, predicted_T_cw, last_T_cw)
             frame.dynamic_prob = np.clip(np.nan_to_num(probs, nan=0.0), 0.0, 1.0)
@@ -181,6 +198,7 @@ class System:
                 self._closed = True
                 self.mapper.finish(self.config.backend.final_global_ba)
         finally:
+            self._lookahead.close()
             self.dynamic_filter.close()
 
     @property
