@@ -13,6 +13,9 @@ benchmark.json):
   and p95, back-end milliseconds per keyframe around the 50th/100th/200th/500th keyframe (does the
   cost grow with the map?), and the stock ORB-SLAM3 peer's tracking median in the same command with
   the ratio of dynslam's whole-run time to it;
+- CPU time by thread and process per frame (``tools/cpu_usage.py``: the tracking thread, the mapping worker,
+  the detector, cpr, ORB lookahead and reader threads), and all of it divided by the cores: a lower bound of
+  the whole-run time (near it, the run is CPU-bound);
 - accuracy and modules: ATE RMSE, median ms per frame per module, loops and relocalization;
 - with ``--long-run N`` (issue 10 asks N >= 5,000): ``tools/memory.py`` on N frames of the generated orbit,
   which returns to its start pose every 1,885 frames, in its own process: mean per-frame step over the
@@ -31,6 +34,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from cpu_usage import CpuSampler, cpu_line
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -57,7 +62,8 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
         dataset = Blackout(dataset, start, count)
     pipeline = Pipeline(dataset, config, output)
     start = time.perf_counter()
-    summary = pipeline.run()
+    with CpuSampler() as cpu:
+        summary = pipeline.run()
     whole_run_s = time.perf_counter() - start
     timer = pipeline.system.timer
     backend_ms = timer.per_frame("backend")
@@ -65,6 +71,8 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
     total_ms = timer.per_frame("total")
     return {
         "whole_run_ms_per_frame": 1e3 * whole_run_s / max(summary.frames, 1),
+        "whole_run_s": whole_run_s,
+        "cpu_s": cpu.seconds,           # by thread / process (tools/cpu_usage.py)
         "latency_ms": {"median": float(np.median(total_ms)), "p95": float(np.percentile(total_ms, 95))},
         "backend_ms_at_keyframes": backend_cost_at_marks(keyframe_ms),
         "system": "dynslam", "sequence": sequence.name, "frames": summary.frames, "tracked": summary.tracked,
@@ -227,7 +235,9 @@ def main(argv=None) -> int:
         if args.peer:
             with tempfile.TemporaryDirectory() as tmp:
                 rows.append(run_peer(args.peer, seq, Path(tmp)))
-    table = speed_table(rows) + "\n\n" + markdown_table(rows)
+    table = speed_table(rows) + "\n\n" + markdown_table(rows) + "\n\n" + "\n".join(
+        f"{r['sequence']}: {cpu_line(r['cpu_s'], r['frames'], r['whole_run_s'])}" for r in rows
+        if r["system"] == "dynslam" and r.get("cpu_s"))
     long_report = None
     if args.long_run:
         long_report = run_long(args.long_run, args.output)

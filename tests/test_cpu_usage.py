@@ -1,0 +1,51 @@
+"""tools/cpu_usage.py: the benchmark's CPU time by thread and process, read from /proc while a run goes."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import load_tool
+
+cpu_usage = load_tool("cpu_usage")
+pytestmark = pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+
+
+def _burn(seconds: float, then_idle: float = 0.0) -> None:
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
+        sum(range(1000))
+    time.sleep(then_idle)      # a pool thread idles until the run closes: its last poll sees all its CPU
+
+
+def test_threads_and_child_processes_are_counted_by_name():
+    with cpu_usage.CpuSampler() as cpu:
+        worker = threading.Thread(target=_burn, args=(0.4, 0.5), name="dynslam-detector_0")
+        worker.start()
+        child = subprocess.Popen([sys.executable, "-c", "import time\nend = time.process_time() + 0.4\n"
+                                  "while time.process_time() < end: pass\ntime.sleep(0.5)"])
+        worker.join()
+        _burn(0.2)
+        time.sleep(0.6)                # the child has burnt its CPU and still lives: sampled
+        child.wait()
+    seconds = cpu.seconds
+    assert 0.3 <= seconds["dynslam-detector"] <= 0.6      # the pool suffix _0 is dropped
+    assert seconds["tracking"] >= 0.15                    # the main thread
+    assert any("python" in name and 0.3 <= v <= 0.7 for name, v in seconds.items()), seconds   # the child
+
+
+def test_cpu_line_gives_per_frame_figures_and_the_per_core_bound():
+    line = cpu_usage.cpu_line({"tracking": 2.0, "mapping worker": 1.0, "idle thread": 0.0001}, 100, 2.0, cores=2)
+    assert line == ("CPU ms per frame: tracking 20.0, mapping worker 10.0; all 30.0 = 15.0 per core on 2 cores "
+                    "(whole run 20.0)")
+
+
+def test_only_the_cpu_used_inside_the_block_counts():
+    _burn(0.3)                                           # before: imports, an earlier run
+    with cpu_usage.CpuSampler() as cpu:
+        _burn(0.1)
+    assert 0.05 <= cpu.seconds["tracking"] <= 0.25
