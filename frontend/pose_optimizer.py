@@ -47,7 +47,12 @@ class PoseResult:
 
 
 def _residuals_and_jacobians(T_cw, obs: PoseObservations, fx, fy, cx, cy, bf):
-    """Residuals e = z - h(T X) (N,3) and Jacobians of h wrt a left twist (N,3,6)."""
+    """Residuals e = z - h(T X) (N,3) and Jacobians of h wrt a left twist (N,3,6).
+
+    Row by row in closed form: d(pc)/d(xi) = [-[pc]x | I] for T <- exp(xi) T, xi = (omega, v), times the
+    projection's derivative (a, 0, c) for u, (0, b, d) for v, (a, 0, g) for the virtual right u (zero for a
+    mono observation). The same values as the batched (N,3,3) @ (N,3,6) product, ~3x cheaper (this runs
+    ~20 times per optimisation, twice a frame)."""
     pc = obs.points_w @ T_cw[:3, :3].T + T_cw[:3, 3]
     x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-6)
     iz = 1.0 / z
@@ -55,22 +60,22 @@ def _residuals_and_jacobians(T_cw, obs: PoseObservations, fx, fy, cx, cy, bf):
     v = fy * y * iz + cy
     ur = u - bf * iz
     stereo = np.isfinite(obs.u_right)
-    e = np.stack([obs.uv[:, 0] - u, obs.uv[:, 1] - v, np.where(stereo, obs.u_right - ur, 0.0)], axis=1)
-    dproj = np.zeros((len(pc), 3, 3))
-    dproj[:, 0, 0] = fx * iz
-    dproj[:, 0, 2] = -fx * x * iz**2
-    dproj[:, 1, 1] = fy * iz
-    dproj[:, 1, 2] = -fy * y * iz**2
-    dproj[:, 2, 0] = fx * iz
-    dproj[:, 2, 2] = -(fx * x - bf) * iz**2
-    dproj[~stereo, 2, :] = 0.0
-    # d(pc)/d(xi) for T <- exp(xi) T with xi = (omega, v): [-[pc]x | I].
-    dpc = np.zeros((len(pc), 3, 6))
-    dpc[:, 0, 1], dpc[:, 0, 2] = pc[:, 2], -pc[:, 1]
-    dpc[:, 1, 0], dpc[:, 1, 2] = -pc[:, 2], pc[:, 0]
-    dpc[:, 2, 0], dpc[:, 2, 1] = pc[:, 1], -pc[:, 0]
-    dpc[:, :, 3:] = np.eye(3)
-    return e, dproj @ dpc, stereo, pc[:, 2]
+    e = np.empty((len(pc), 3))
+    e[:, 0], e[:, 1] = obs.uv[:, 0] - u, obs.uv[:, 1] - v
+    e[:, 2] = np.where(stereo, obs.u_right - ur, 0.0)
+    zc = pc[:, 2]                     # the Jacobian uses the unclamped depth, as d(pc)/d(xi) does
+    a, b = fx * iz, fy * iz
+    iz2 = iz * iz
+    c, d, g = -fx * x * iz2, -fy * y * iz2, -(fx * x - bf) * iz2
+    J = np.empty((len(pc), 3, 6))
+    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = c * y, a * zc - c * x, -a * y
+    J[:, 0, 3], J[:, 0, 4], J[:, 0, 5] = a, 0.0, c
+    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = d * y - b * zc, -d * x, b * x
+    J[:, 1, 3], J[:, 1, 4], J[:, 1, 5] = 0.0, b, d
+    J[:, 2, 0], J[:, 2, 1], J[:, 2, 2] = g * y, a * zc - g * x, -a * y
+    J[:, 2, 3], J[:, 2, 4], J[:, 2, 5] = a, 0.0, g
+    J[~stereo, 2, :] = 0.0
+    return e, J, stereo, pc[:, 2]
 
 
 def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: int = 10, rounds: int = 4,

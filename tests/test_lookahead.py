@@ -16,8 +16,8 @@ from slam.runtime.system import System, UpcomingFrame
 from slam.runtime.tracking_loop import TrackingLoop
 from conftest import synthetic_config, synthetic_sequence
 
-FRAMES = 10
-DELAY_S = 0.15   # far longer than a generated frame's tracking or its cpr registration (~20-60 ms)
+FRAMES = 7
+DELAY_S = 0.1   # far longer than a generated frame's tracking or its cpr registration (~20-60 ms)
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,8 @@
 """SE(3) helpers on 4x4 numpy matrices. Convention: T_ab maps points from frame b into frame a."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -40,11 +42,24 @@ def _so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
-    """Pose from a twist (omega, v): rotation part first, as in GTSAM's Pose3.Expmap."""
+    """Pose from a twist (omega, v): rotation part first, as in GTSAM's Pose3.Expmap.
+
+    Rodrigues' rotation and the left Jacobian from the same K and K^2 (``so3_exp``, ``_so3_left_jacobian``
+    written once, on Python floats for the coefficients): the pose optimiser calls this ~40 times a frame."""
     xi = np.asarray(xi, dtype=float)
-    omega, v = xi[:3], xi[3:]
+    wx, wy, wz = float(xi[0]), float(xi[1]), float(xi[2])
+    theta = math.sqrt(wx * wx + wy * wy + wz * wz)
+    K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    K2 = K @ K
+    if theta < 1e-10:
+        R = np.eye(3) + K
+        V = np.eye(3) + 0.5 * K
+    else:
+        t2 = theta * theta
+        R = np.eye(3) + (math.sin(theta) / theta) * K + ((1 - math.cos(theta)) / t2) * K2
+        V = np.eye(3) + ((1 - math.cos(theta)) / t2) * K + ((theta - math.sin(theta)) / (t2 * theta)) * K2
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = so3_exp(omega), _so3_left_jacobian(omega) @ v
+    T[:3, :3], T[:3, 3] = R, V @ xi[3:]
     return T
 
 
