@@ -106,6 +106,10 @@ def test_json_round_trip(graph, tmp_path):
     assert set(doc["keyframes"][0]) == {"id", "timestamp", "t", "q"}
     assert set(doc["edges"][0]) == {"a", "b", "kind", "t", "q", "information"}
     assert [e["kind"] for e in doc["edges"]] == [e.kind for e in edges]
+    # one keyframe or edge per line: a person (or grep) reads it, and each line is JSON of its own
+    lines = path.read_text().splitlines()
+    item_lines = [json.loads(line.strip().rstrip(",")) for line in lines if line.startswith("  {")]
+    assert item_lines == doc["keyframes"] + doc["edges"]
 
     ids2, stamps2, poses2, edges2 = load_json(path)
     np.testing.assert_array_equal(ids2, ids)
