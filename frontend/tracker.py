@@ -111,17 +111,13 @@ class Tracker:
     def last_T_cw(self) -> Optional[np.ndarray]:
         return self._last_T_cw if self.state == TrackingState.OK else None
 
-    def predicted_T_cw(self, frames_ahead: int = 1) -> Optional[np.ndarray]:
-        """Constant-velocity prediction of the pose ``frames_ahead`` frames after the last tracked one
-        (1: the next frame; None before init / when lost)."""
+    def predicted_T_cw(self) -> Optional[np.ndarray]:
+        """Constant-velocity prediction of the next frame's pose (None before init / when lost)."""
         if self.state != TrackingState.OK or self._last_T_cw is None:
             return None
         if self._velocity is None:
             return self._last_T_cw.copy()
-        T = self._last_T_cw
-        for _ in range(frames_ahead):
-            T = self._velocity @ T
-        return orthonormalize(T)
+        return orthonormalize(self._velocity @ self._last_T_cw)
 
     def adopt_keyframe_landmarks(self, landmark_of_keypoint: np.ndarray) -> None:
         """The last frame became a keyframe and gained new landmarks: track against them too."""

@@ -53,6 +53,12 @@ class DynamicFilter(Protocol):
         it itself when this was not called for its frame."""
         ...
 
+    def begin_images(self, rgb: np.ndarray, gray: np.ndarray, timestamp: float) -> None:
+        """Start only what needs the image alone (the detector), earlier: one frame ahead, while the frame
+        before is tracked (the System's lookahead). ``begin_frame`` for the same frame (the same ``gray``)
+        then adds the pose-dependent work. Optional."""
+        ...
+
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
         """Dynamic probability in [0, 1] for each of the frame's features."""
@@ -93,6 +99,9 @@ class StaticWorld:
     revised_masks: Sequence[RevisedMask] = ()
 
     def begin_frame(self, rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw) -> None:
+        return None
+
+    def begin_images(self, rgb, gray, timestamp) -> None:
         return None
 
     def process(self, frame, rgb, gray, depth, predicted_T_cw, last_T_cw) -> np.ndarray:

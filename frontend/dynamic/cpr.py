@@ -37,10 +37,10 @@ Interpretation of the paper, and deviations (numbers are all in ``CprConfig``):
   another frame). The ICP needs current camera -> reference camera: T_ref_cw @ inv(T_cur_cw), with T_cur_cw =
   ``ctx.predicted_T_cw`` (ORB-SLAM's T_pre T_last, the same constant-velocity model) and T_ref_cw the pose
   ``end_frame`` stored for the reference. Identity when either is unknown (start, lost tracking). On Bonn crowd
-  the identity guess did as well as the odometry guess: two frames apart the motion is small. A frame prepared
-  one ahead (the System's lookahead, while the frame before is tracked) gets the prediction two frames past
-  the last tracked one: fr1/rpy-400 0.0222 -> 0.0239 m and Bonn-480 0.0104 -> 0.0101 m with seed 0
-  (``python tools/accuracy.py``), within their seed-to-seed spread.
+  the identity guess did as well as the odometry guess: two frames apart the motion is small. Not on fr1/rpy's
+  fast rotation: registered one frame ahead (while the frame before was tracked) with the prediction two
+  frames past the last tracked one, its first 120 frames went from 0.0172 to 0.0292 m ATE, so the System's
+  lookahead (slam/runtime/lookahead.py) runs only the detector and ORB ahead, not this registration.
 * Eq. 7 is garbled in the paper. We use the Student-t weight of Kerl et al. [27] that it cites,
   w(r) = (nu + 1) / (nu + (r / s)^2), with s = 1.4826 * median(|r - median(r)|) (Eqs. 8-9) over all candidate
   residuals of the sub-cloud in that iteration (over one point's 10 candidates it would be meaningless, and
@@ -244,12 +244,12 @@ class _Prepared:
 class CprMethod:
     """Sub-point-cloud correlation. See the module docstring for the algorithm and the choices made.
 
-    ``prepare`` may run one frame ahead on another thread (``DynamicRejector`` with a lookahead): frame t+1
-    is prepared while frame t is tracked. Everything ``prepare`` reads is then already fixed: the clouds of
-    the frames before it (appended by their own ``prepare``, in frame order) and the pose of its reference
-    (``sigma_frame`` >= 2 frames back, ended before the lookahead starts). What depends on frame t's
-    tracking (the masks' keyframe weights for Algorithm 1) is read in ``process``, on the tracking thread,
-    after ``end_frame`` of t: the result does not depend on the threads' timing."""
+    ``prepare`` runs on the rejector's thread; ``process`` finds the frame's preparation by its image
+    (``ctx.gray``: the rejector gives ``process`` a context of its own). Everything ``prepare`` reads is
+    fixed before it starts: the clouds of the frames before it (appended by their own ``prepare``, in frame
+    order) and the pose of its reference (``end_frame`` of the frame before ran first). Algorithm 1's
+    keyframe weights are read in ``process``, on the tracking thread: the result does not depend on the
+    threads' timing."""
 
     name = "cpr"
     needs_detector = False

@@ -36,9 +36,9 @@ class _BegunFrame:
     """A frame whose image-only work (detection, the methods' prepare) runs on the threads."""
 
     timestamp: float
-    ctx: DynamicContext
+    gray: np.ndarray               # the frame's image: ``process`` finds its begun work by this object
     detection: Optional[Future]
-    prepared: Optional[Future]
+    prepared: Optional[Future] = None
 
 
 class DynamicRejector:
@@ -87,20 +87,28 @@ class DynamicRejector:
         self.revised_masks: list[RevisedMask] = []
         self._last_time: Optional[float] = None
 
-    def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
-                    predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> None:
-        ctx = DynamicContext(None, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
-        detection = prepared = None
+    def begin_images(self, rgb: np.ndarray, gray: np.ndarray, timestamp: float) -> None:
+        """The work that needs only the image (the detector), started early: the System's lookahead calls
+        this one frame ahead, while the frame before is tracked. ``begin_frame`` adds the rest."""
+        detection = None
         if self.detector is not None:
             if self._detect_thread is None:
                 self._detect_thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-detector")
             detection = self._detect_thread.submit(self.detector.detect, rgb, timestamp)
+        self._begun.append(_BegunFrame(timestamp, gray, detection))
+
+    def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
+                    predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> None:
+        if not (self._begun and self._begun[-1].timestamp == timestamp and self._begun[-1].gray is gray
+                and self._begun[-1].prepared is None):
+            self.begin_images(rgb, gray, timestamp)
         threaded = [m for m in self.methods if m.prepares]
         if threaded:
+            # With the pose prediction of the frame before's tracking, as in line: the same bits.
+            ctx = DynamicContext(None, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
             if self._prepare_thread is None:
                 self._prepare_thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-dynamic")
-            prepared = self._prepare_thread.submit(self._prepare, threaded, ctx)
-        self._begun.append(_BegunFrame(timestamp, ctx, detection, prepared))
+            self._begun[-1].prepared = self._prepare_thread.submit(self._prepare, threaded, ctx)
 
     def _prepare(self, methods: list[DynamicMethod], ctx: DynamicContext) -> None:
         for method in methods:
@@ -113,7 +121,7 @@ class DynamicRejector:
         nothing left running) when the frame was not begun."""
         while self._begun:
             begun = self._begun.popleft()
-            if begun.timestamp == timestamp and begun.ctx.gray is gray:
+            if begun.timestamp == timestamp and begun.gray is gray:
                 return begun
             for future in (begun.detection, begun.prepared):
                 if future is not None:
@@ -123,8 +131,6 @@ class DynamicRejector:
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
         begun = self._take_begun(frame.timestamp, gray)
-        # The frame's own context: a frame begun one ahead was prepared with a prediction from the frame
-        # before the last; what runs now sees the last frame's (the threads may still read the other).
         ctx = DynamicContext(frame, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
         prepared = None
         if begun is not None:

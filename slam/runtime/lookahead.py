@@ -1,17 +1,19 @@
 """One frame of lookahead: the next frame's image-only work runs while this frame is tracked.
 
 ``System.process(..., upcoming=UpcomingFrame(...))`` starts, for the frame after the one it processes, the
-work that needs only images: the ORB features (on a thread here, with their own extractor) and the dynamic
-filter's ``begin_frame`` (the detector, cpr's registration, on the filter's threads). The next
-``process`` call takes them over. Without it those threads ran only while the frame's own features were
-extracted and stood idle while it was tracked; ORB and ONNX Runtime release the GIL, numpy's array loops
-too, so on two cores the tracking of one frame and the image work of the next overlap.
+work that needs only its images: the ORB features (on a thread here, with their own extractor) and the
+detector (``DynamicFilter.begin_images``, on the filter's thread). The next ``process`` call takes them
+over and starts the pose-dependent image work (cpr's registration) as without lookahead. Without it those
+threads ran only while the frame's own features were extracted and stood idle while it was tracked; ORB
+and ONNX Runtime release the GIL, so on two cores the tracking of one frame and the image work of the next
+overlap.
 
-Deterministic by construction: what runs ahead reads only the images and what was fixed before this
-frame's tracking began. cpr's initial guess for the frame ahead is the constant-velocity prediction two
-frames past the last tracked frame (``Tracker.predicted_T_cw(2)``), where a frame processed without
-lookahead uses one frame past its predecessor; both are functions of the input, never of the timing. A live
-source in realtime mode has no frame ahead to wait for; the pipeline gives no ``upcoming`` there.
+Nothing that runs ahead depends on the tracking it overlaps: the same bits as without lookahead, whichever
+thread finishes first (``tests/test_lookahead.py``). cpr's registration is not run ahead on purpose: its
+initial guess is the constant-velocity prediction from the frame before, and the prediction two frames
+past the last tracked frame (tried: registration ahead too) made fr1/rpy's first 120 frames 0.0172 ->
+0.0292 m ATE (fast rotation: twice the prediction error). A live source in realtime mode has no frame
+ahead to wait for; the pipeline gives no ``upcoming`` there.
 """
 from __future__ import annotations
 
@@ -64,10 +66,9 @@ class FrameLookahead:
         self._thread: Optional[ThreadPoolExecutor] = None
         self._begun: Optional[BegunFrame] = None
 
-    def begin(self, upcoming: UpcomingFrame, dynamic_filter: DynamicFilter, predicted_T_cw: Optional[np.ndarray],
-              last_T_cw: Optional[np.ndarray]) -> None:
-        """Start ``upcoming``'s features and its dynamic filter work. A frame that breaks the input contract
-        is left alone: its own ``process`` call raises the error, as without lookahead."""
+    def begin(self, upcoming: UpcomingFrame, dynamic_filter: DynamicFilter) -> None:
+        """Start ``upcoming``'s features and its detections. A frame that breaks the input contract is left
+        alone: its own ``process`` call raises the error, as without lookahead."""
         self.drop()
         try:
             check_inputs(upcoming.rgb, upcoming.depth, upcoming.timestamp, self.camera.width, self.camera.height)
@@ -76,7 +77,7 @@ class FrameLookahead:
         rgb = upcoming.rgb
         depth = clean_depth(upcoming.depth)
         gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
-        dynamic_filter.begin_frame(rgb, gray, depth, upcoming.timestamp, predicted_T_cw, last_T_cw)
+        dynamic_filter.begin_images(rgb, gray, upcoming.timestamp)
         if self._thread is None:
             self._thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-features")
         features = self._thread.submit(self._extract, gray, depth, upcoming.index, upcoming.timestamp)

@@ -100,8 +100,8 @@ class System:
     def process(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, index: Optional[int] = None,
                 upcoming: Optional[UpcomingFrame] = None) -> FrameOutput:
         """Track one frame. ``upcoming``: the frame the next call will get, if known (a dataset); its
-        features and image-only dynamic work then run on threads while this frame is tracked
-        (slam/runtime/lookahead.py). The result is the same however the threads are scheduled."""
+        features and detections then run on threads while this frame is tracked
+        (slam/runtime/lookahead.py). The result is the same bits as without it."""
         check_inputs(rgb, depth, timestamp, self.camera.width, self.camera.height)
         index = len(self.tracking.frames) if index is None else index
         begun = self._lookahead.take(timestamp, index)
@@ -115,13 +115,14 @@ class System:
         if begun is None:
             with self.timer.measure("extract"):
                 gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
-            # The image-only dynamic work (detector, cpr) runs on threads while the features are extracted.
-            self.dynamic_filter.begin_frame(rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw)
         else:
             gray = begun.gray
+        # The image-only dynamic work (detector, cpr) runs on threads while the features are extracted
+        # (the detector of a frame begun ahead already runs).
+        self.dynamic_filter.begin_frame(rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw)
         if upcoming is not None and not self.realtime:
             # Begun after this frame's own work, so every thread takes the frames in order.
-            self._lookahead.begin(upcoming, self.dynamic_filter, tracker.predicted_T_cw(2), last_T_cw)
+            self._lookahead.begin(upcoming, self.dynamic_filter)
         with self.timer.measure("extract"):
             frame = begun.features.result() if begun is not None else self.extractor.extract(gray, depth, index,
                                                                                                timestamp)
