@@ -59,3 +59,10 @@ def test_long_run_runs_the_memory_tool_in_its_own_process(tmp_path):
     assert report["frames"] == 40 and [(b["first"], b["last"]) for b in report["blocks"]] == [(1, 15), (16, 30), (31, 40)]
     assert (tmp_path / "long_run.json").is_file()
     assert "last / first" in benchmark.long_run_table(report)
+
+
+def test_method_line_lists_every_dynamic_method_slowest_first():
+    line = benchmark.method_line({"box_depth": 4.25, "cpr": 21.0, "detector": 0.1})
+    assert line == ("dynamic front end (methods, detector wait, steps), median wall ms per frame: cpr 21.0, "
+                    "box_depth 4.2, detector 0.1")
+    assert benchmark.method_line({}) == "dynamic front end: none (dynamic handling off)"

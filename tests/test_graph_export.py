@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import backend.graph_export as ge
 from backend.graph_export import (GraphEdge, export_g2o, export_json, graph_edges_from_mapper, load_json,
                                   mapper_keyframes)
 from slam.core.geometry import invert

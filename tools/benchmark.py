@@ -15,7 +15,7 @@ benchmark.json):
   the ratio of dynslam's whole-run time to it;
 - CPU time by thread and process per frame (``tools/cpu_usage.py``: the tracking thread, the mapping worker,
   the detector, cpr, ORB lookahead and reader threads), and all of it divided by the cores: a lower bound of
-  the whole-run time (near it, the run is CPU-bound);
+  the whole-run time (near it, the run is CPU-bound); each dynamic method's median wall ms per frame;
 - accuracy and modules: ATE RMSE, median ms per frame per module, loops and relocalization;
 - with ``--long-run N`` (issue 10 asks N >= 5,000): ``tools/memory.py`` on N frames of the generated orbit,
   which returns to its start pose every 1,885 frames, in its own process: mean per-frame step over the
@@ -78,6 +78,9 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
         "system": "dynslam", "sequence": sequence.name, "frames": summary.frames, "tracked": summary.tracked,
         "keyframes": summary.keyframes, "ate_rmse_m": summary.ate_rmse_m,
         "median_ms": {m: summary.timing_ms.get(m, {}).get("median_ms", 0.0) for m in MODULES},
+        # each dynamic method's (and the detector wait's) median wall ms per frame, on its own thread or not
+        "method_ms": {m.split(".", 1)[1]: t["median_ms"] for m, t in summary.timing_ms.items()
+                      if m.startswith("dynamic.")},
         "mean_total_ms": summary.timing_ms.get("total", {}).get("mean_ms", 0.0),
         "backend_ms_per_keyframe": float(np.median(keyframe_ms)) if len(keyframe_ms) else 0.0,
         **_place_recognition(summary.place_recognition),
@@ -154,6 +157,15 @@ def markdown_table(rows: list[dict]) -> str:
                      f"{r.get('relocalizations', '–')} | {_num(r.get('reloc_ms_per_attempt'))}, "
                      f"{_num(r.get('reloc_ms_max'))} |")
     return "\n".join(lines)
+
+
+def method_line(method_ms: dict[str, float]) -> str:
+    """The dynamic methods' median wall ms per frame (cpr's registration runs on its thread while the
+    other methods run; ``detector`` and ``prepare_wait`` are what tracking waited for)."""
+    if not method_ms:
+        return "dynamic front end: none (dynamic handling off)"
+    return "dynamic front end (methods, detector wait, steps), median wall ms per frame: " + ", ".join(
+        f"{name} {ms:.1f}" for name, ms in sorted(method_ms.items(), key=lambda kv: -kv[1]))
 
 
 def _num(value) -> str:
@@ -236,7 +248,8 @@ def main(argv=None) -> int:
             with tempfile.TemporaryDirectory() as tmp:
                 rows.append(run_peer(args.peer, seq, Path(tmp)))
     table = speed_table(rows) + "\n\n" + markdown_table(rows) + "\n\n" + "\n".join(
-        f"{r['sequence']}: {cpu_line(r['cpu_s'], r['frames'], r['whole_run_s'])}" for r in rows
+        f"{r['sequence']}: {cpu_line(r['cpu_s'], r['frames'], r['whole_run_s'])}\n"
+        f"{r['sequence']}: {method_line(r.get('method_ms', {}))}" for r in rows
         if r["system"] == "dynslam" and r.get("cpu_s"))
     long_report = None
     if args.long_run:
