@@ -51,7 +51,7 @@ def _residuals_and_jacobians(T_cw, obs: PoseObservations, fx, fy, cx, cy, bf):
 
     Row by row in closed form: d(pc)/d(xi) = [-[pc]x | I] for T <- exp(xi) T, xi = (omega, v), times the
     projection's derivative (a, 0, c) for u, (0, b, d) for v, (a, 0, g) for the virtual right u (zero for a
-    mono observation). The same values as the batched (N,3,3) @ (N,3,6) product, ~3x cheaper (this runs
+    mono observation). The same values as the batched (N,3,3) @ (N,3,6) product, ~1.5x cheaper (this runs
     ~20 times per optimisation, twice a frame)."""
     pc = obs.points_w @ T_cw[:3, :3].T + T_cw[:3, 3]
     x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-6)

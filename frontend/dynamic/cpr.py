@@ -152,7 +152,6 @@ The paper reports 213 ms on a Jetson Orin.
 """
 from __future__ import annotations
 
-import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -225,31 +224,12 @@ def soft_probability(refined: np.ndarray, fraction: np.ndarray, tau: float) -> n
 
 @dataclass
 class _Past:
-    """A prepared frame: its cloud and raw mask; the pose and keyframe status come with ``end_frame``."""
-
     cloud: Cloud
-    T_cw: Optional[np.ndarray] = None
-    raw: Optional[np.ndarray] = None
-    refined: Optional[np.ndarray] = None
-
-
-@dataclass
-class _Prepared:
-    gray: np.ndarray                   # the frame's image: ``process`` finds its preparation by this object
-    entry: _Past
-    info: dict
-    times: dict[str, float]
+    T_cw: Optional[np.ndarray]
 
 
 class CprMethod:
-    """Sub-point-cloud correlation. See the module docstring for the algorithm and the choices made.
-
-    ``prepare`` runs on the rejector's thread; ``process`` finds the frame's preparation by its image
-    (``ctx.gray``: the rejector gives ``process`` a context of its own). Everything ``prepare`` reads is
-    fixed before it starts: the clouds of the frames before it (appended by their own ``prepare``, in frame
-    order) and the pose of its reference (``end_frame`` of the frame before ran first). Algorithm 1's
-    keyframe weights are read in ``process``, on the tracking thread: the result does not depend on the
-    threads' timing."""
+    """Sub-point-cloud correlation. See the module docstring for the algorithm and the choices made."""
 
     name = "cpr"
     needs_detector = False
@@ -258,49 +238,47 @@ class CprMethod:
 
     def __init__(self, cfg: Optional[CprConfig] = None):
         self.cfg = cfg or CprConfig()
-        # +2: the frame being tracked and the one prepared ahead of it
-        self._past: deque[_Past] = deque(maxlen=max(self.cfg.sigma_frame, self.cfg.sigma_keyframe) + 2)
-        self._past_lock = threading.Lock()     # appended by prepare's thread, read by end_frame
+        self._past: deque[_Past] = deque(maxlen=max(self.cfg.sigma_frame, self.cfg.sigma_keyframe) + 1)
         self._masks: deque[tuple[np.ndarray, float]] = deque(maxlen=max(1, self.cfg.refine_window))
         self._grid_key = None
-        self._prepared: deque[_Prepared] = deque()   # prepared, not yet processed (oldest first)
-        self._current: Optional[_Past] = None        # processed, waiting for its end_frame
+        self._pending: Optional[dict] = None
+        self._prepared: Optional[tuple] = None     # (ctx, prob map or None = abstain, info, stage ms)
         self.timings: dict[str, float] = {}
 
     # -- public --
     def prepare(self, ctx: DynamicContext) -> None:
-        """Everything but the keypoint lookup and Algorithm 1: the cloud, the sub-poses, the scores and the
-        raw mask need only the depth, the grey image and the predicted pose, so the rejector runs this on a
-        thread (``ctx.frame`` may still be None). ``process`` finishes the frame."""
+        """Everything but the keypoint lookup: the cloud, the sub-poses, the scores and the mask need only
+        the depth, the grey image and the predicted pose, so the rejector runs this on a thread while the
+        features are extracted (``ctx.frame`` may still be None). ``process`` finishes the frame."""
+        self._flush_pending()
         times: dict[str, float] = {}
         t0 = time.perf_counter()
         cloud = self._cloud(ctx)
         times["cloud"] = (time.perf_counter() - t0) * 1e3
-        entry = _Past(cloud)
-        with self._past_lock:
-            ref = self._reference(list(self._past), len(self._past), self.cfg.sigma_frame)
+        pending = {"cloud": cloud, "raw": None, "refined": None}
+        self._pending = pending
+        ref = self._reference(self.cfg.sigma_frame)
         if ref is None or len(cloud) < self.cfg.clusters * _MIN_CLUSTER_POINTS or len(ref.cloud) < 10:
-            info: dict = {"abstain": 1}
-        else:
-            entry.raw, info = self._raw_mask(cloud, ref, ctx.predicted_T_cw, times)
-        with self._past_lock:
-            self._past.append(entry)
-        self._prepared.append(_Prepared(ctx.gray, entry, info, times))
+            self._prepared = (ctx, None, {"abstain": 1}, times)
+            return
+        raw, info = self._raw_mask(cloud, ref, ctx.predicted_T_cw, times)
+        pending["raw"] = raw
+        t0 = time.perf_counter()
+        prob_map = raw.astype(np.float32)
+        if self.cfg.refine and len(self._masks) >= self.cfg.refine_window:
+            refined, fraction = refine_mask(list(self._masks), raw, self.cfg.rho_keyframe, self.cfg.tau,
+                                            self.cfg.circle_radius)
+            pending["refined"] = refined
+            prob_map = soft_probability(refined, fraction, self.cfg.tau)
+        times["refine"] = (time.perf_counter() - t0) * 1e3
+        self._prepared = (ctx, prob_map, info, times)
 
     def process(self, ctx: DynamicContext) -> MethodOutput:
-        prepared = self._take_prepared(ctx.gray)
-        if prepared is None:                   # not prepared for this frame: do it now
+        prepared, self._prepared = self._prepared, None
+        if prepared is None or prepared[0] is not ctx:     # not prepared for this frame: do it now
             self.prepare(ctx)
-            prepared = self._prepared.pop()
-        entry, info, times = prepared.entry, prepared.info, prepared.times
-        self._current = entry
-        t0 = time.perf_counter()
-        prob_map = None if entry.raw is None else entry.raw.astype(np.float32)
-        if prob_map is not None and self.cfg.refine and len(self._masks) >= self.cfg.refine_window:
-            entry.refined, fraction = refine_mask(list(self._masks), entry.raw, self.cfg.rho_keyframe, self.cfg.tau,
-                                                  self.cfg.circle_radius)
-            prob_map = soft_probability(entry.refined, fraction, self.cfg.tau)
-        times["refine"] = (time.perf_counter() - t0) * 1e3
+            prepared, self._prepared = self._prepared, None
+        _, prob_map, info, times = prepared
         n = len(ctx.frame)
         self.timings = times
         info = {**info, **{f"ms_{k}": v for k, v in times.items()}}
@@ -311,42 +289,39 @@ class CprMethod:
 
     def end_frame(self, ctx: DynamicContext, output: MethodOutput, T_cw: Optional[np.ndarray],
                   is_keyframe: bool) -> None:
-        entry, self._current = self._current, None
-        if entry is None:
+        pending = self._pending
+        if pending is None:
             return
-        entry.T_cw = None if T_cw is None else np.asarray(T_cw, float).copy()
-        if is_keyframe and self.cfg.keyframe_recompute and entry.raw is not None:
-            with self._past_lock:
-                past = list(self._past)
-            position = next((i for i, e in enumerate(past) if e is entry), None)
-            ref = None if position is None else self._reference(past, position, self.cfg.sigma_keyframe)
-            if ref is not None:
-                guess = entry.T_cw if entry.T_cw is not None else ctx.predicted_T_cw
-                entry.raw, _ = self._raw_mask(entry.cloud, ref, guess, {})
-                entry.refined = None
+        self._pending = None
+        T = None if T_cw is None else np.asarray(T_cw, float).copy()
+        if is_keyframe and self.cfg.keyframe_recompute:
+            ref = self._reference(self.cfg.sigma_keyframe)
+            if ref is not None and pending["raw"] is not None:
+                raw, _ = self._raw_mask(pending["cloud"], ref, T if T is not None else ctx.predicted_T_cw, {})
+                pending["raw"] = raw
+                pending["refined"] = None
                 if len(self._masks) >= self.cfg.refine_window:
-                    entry.refined, _ = refine_mask(list(self._masks), entry.raw, self.cfg.rho_keyframe, self.cfg.tau,
-                                                   self.cfg.circle_radius)
-        mask = entry.refined if (is_keyframe and entry.refined is not None) else entry.raw
+                    pending["refined"], _ = refine_mask(list(self._masks), raw, self.cfg.rho_keyframe, self.cfg.tau,
+                                                        self.cfg.circle_radius)
+        self._store(pending, T, is_keyframe)
+
+    # -- internals --
+    def _flush_pending(self) -> None:
+        """A frame whose end_frame never came is kept as an ordinary frame with an unknown pose."""
+        if self._pending is not None:
+            self._store(self._pending, None, False)
+            self._pending = None
+
+    def _store(self, pending: dict, T_cw: Optional[np.ndarray], is_keyframe: bool) -> None:
+        self._past.append(_Past(pending["cloud"], T_cw))
+        mask = pending["refined"] if (is_keyframe and pending["refined"] is not None) else pending["raw"]
         if mask is not None:
             self._masks.append((mask, self.cfg.rho_keyframe if is_keyframe else self.cfg.rho_frame))
 
-    # -- internals --
-    def _take_prepared(self, gray: np.ndarray) -> Optional[_Prepared]:
-        """This frame's preparation; earlier ones never processed (their extraction failed) are dropped:
-        their clouds stay in the history as frames with an unknown pose."""
-        while self._prepared:
-            prepared = self._prepared.popleft()
-            if prepared.gray is gray:
-                return prepared
-        return None
-
-    @staticmethod
-    def _reference(past: list[_Past], position: int, sigma: int) -> Optional[_Past]:
-        """The frame ``sigma`` frames before ``past[position]`` (``position`` = len: the frame to come)."""
-        if sigma < 1 or position < sigma:
+    def _reference(self, sigma: int) -> Optional[_Past]:
+        if sigma < 1 or len(self._past) < sigma:
             return None
-        return past[position - sigma]
+        return self._past[-sigma]
 
     def _cloud(self, ctx: DynamicContext) -> Cloud:
         h, w = ctx.depth.shape[:2]

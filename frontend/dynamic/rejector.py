@@ -39,6 +39,7 @@ class _BegunFrame:
     gray: np.ndarray               # the frame's image: ``process`` finds its begun work by this object
     detection: Optional[Future]
     prepared: Optional[Future] = None
+    ctx: Optional[DynamicContext] = None   # what the methods' prepare got; process completes it
 
 
 class DynamicRejector:
@@ -108,6 +109,7 @@ class DynamicRejector:
             ctx = DynamicContext(None, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
             if self._prepare_thread is None:
                 self._prepare_thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-dynamic")
+            self._begun[-1].ctx = ctx
             self._begun[-1].prepared = self._prepare_thread.submit(self._prepare, threaded, ctx)
 
     def _prepare(self, methods: list[DynamicMethod], ctx: DynamicContext) -> None:
@@ -123,18 +125,24 @@ class DynamicRejector:
             begun = self._begun.popleft()
             if begun.timestamp == timestamp and begun.gray is gray:
                 return begun
-            for future in (begun.detection, begun.prepared):
-                if future is not None:
-                    future.exception()   # waits; a dropped frame's failure is not the next frame's
+            self._end(begun)
         return None
+
+    @staticmethod
+    def _end(begun: _BegunFrame) -> None:
+        """Wait for a dropped frame's work; its failure is not the next frame's."""
+        for future in (begun.detection, begun.prepared):
+            if future is not None:
+                future.exception()
 
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
         begun = self._take_begun(frame.timestamp, gray)
         ctx = DynamicContext(frame, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
         prepared = None
-        if begun is not None:
-            prepared = begun.prepared
+        if begun is not None and begun.ctx is not None:
+            ctx, prepared = begun.ctx, begun.prepared     # the context the methods prepared, completed
+            ctx.frame = frame
         if self.detector is not None:  # built only when a method or the box prior needs it
             with self.timer.measure("dynamic.detector"):   # with begin_frame: the wait for the thread
                 if begun is not None and begun.detection is not None:
@@ -282,7 +290,8 @@ class DynamicRejector:
 
     def close(self) -> None:
         """Stop the threads and persist what is worth keeping (the detection cache)."""
-        self._take_begun(float("nan"), np.zeros(0))   # waits for (and drops) frames begun, never processed
+        while self._begun:                 # frames begun, never processed: their work ends first
+            self._end(self._begun.popleft())
         for pool in (self._detect_thread, self._prepare_thread):
             if pool is not None:
                 pool.shutdown(wait=True)

@@ -19,12 +19,7 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 def so3_exp(omega: np.ndarray) -> np.ndarray:
     """Rodrigues' formula for a rotation vector."""
-    omega = np.asarray(omega, dtype=float)
-    theta = np.linalg.norm(omega)
-    K = skew(omega)
-    if theta < 1e-10:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * (K @ K)
+    return _so3_exp_and_left_jacobian(omega)[0]
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
@@ -34,30 +29,29 @@ def so3_log(R: np.ndarray) -> np.ndarray:
 
 def _so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
     """V in t = V v: how a twist's translation part becomes the pose's translation."""
-    theta = np.linalg.norm(omega)
-    K = skew(omega)
+    return _so3_exp_and_left_jacobian(omega)[1]
+
+
+def _so3_exp_and_left_jacobian(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Rodrigues' R, left Jacobian V) from one K and K^2, the coefficients on Python floats: the pose
+    optimiser calls ``se3_exp`` ~40 times a frame, and numpy scalars cost twice as much there."""
+    wx, wy, wz = (float(w) for w in np.asarray(omega, dtype=float).reshape(3))
+    theta = math.sqrt(wx * wx + wy * wy + wz * wz)
+    K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
     if theta < 1e-10:
-        return np.eye(3) + 0.5 * K
-    return np.eye(3) + (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * (K @ K)
+        return np.eye(3) + K, np.eye(3) + 0.5 * K
+    K2 = K @ K
+    t2 = theta * theta
+    one_minus_cos = (1 - math.cos(theta)) / t2
+    R = np.eye(3) + (math.sin(theta) / theta) * K + one_minus_cos * K2
+    V = np.eye(3) + one_minus_cos * K + ((theta - math.sin(theta)) / (t2 * theta)) * K2
+    return R, V
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
-    """Pose from a twist (omega, v): rotation part first, as in GTSAM's Pose3.Expmap.
-
-    Rodrigues' rotation and the left Jacobian from the same K and K^2 (``so3_exp``, ``_so3_left_jacobian``
-    written once, on Python floats for the coefficients): the pose optimiser calls this ~40 times a frame."""
+    """Pose from a twist (omega, v): rotation part first, as in GTSAM's Pose3.Expmap."""
     xi = np.asarray(xi, dtype=float)
-    wx, wy, wz = float(xi[0]), float(xi[1]), float(xi[2])
-    theta = math.sqrt(wx * wx + wy * wy + wz * wz)
-    K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
-    K2 = K @ K
-    if theta < 1e-10:
-        R = np.eye(3) + K
-        V = np.eye(3) + 0.5 * K
-    else:
-        t2 = theta * theta
-        R = np.eye(3) + (math.sin(theta) / theta) * K + ((1 - math.cos(theta)) / t2) * K2
-        V = np.eye(3) + ((1 - math.cos(theta)) / t2) * K + ((theta - math.sin(theta)) / (t2 * theta)) * K2
+    R, V = _so3_exp_and_left_jacobian(xi[:3])
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, V @ xi[3:]
     return T

@@ -7,6 +7,7 @@ A wrong input is an ``InputError`` naming what was expected and what came, never
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from slam.core.errors import DynslamError
@@ -54,3 +55,8 @@ def clean_depth(depth: np.ndarray) -> np.ndarray:
     if valid.all():
         return depth
     return np.where(valid, depth, 0).astype(np.float32)
+
+
+def to_gray(rgb: np.ndarray) -> np.ndarray:
+    """The grey image every module reads (a grey input is used as it is)."""
+    return rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)

@@ -21,7 +21,6 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Optional
 
-import cv2
 import numpy as np
 
 from frontend.dynamic import DynamicFilter
@@ -30,7 +29,7 @@ from slam.core.camera import PinholeCamera
 from slam.core.config import OrbConfig
 from slam.core.frame import FeatureFrame
 from slam.core.timing import ModuleTimer
-from slam.runtime.inputs import InputError, check_inputs, clean_depth
+from slam.runtime.inputs import InputError, check_inputs, clean_depth, to_gray
 
 
 @dataclass
@@ -76,7 +75,7 @@ class FrameLookahead:
             return
         rgb = upcoming.rgb
         depth = clean_depth(upcoming.depth)
-        gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
+        gray = to_gray(rgb)
         dynamic_filter.begin_images(rgb, gray, upcoming.timestamp)
         if self._thread is None:
             self._thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-features")

@@ -33,7 +33,7 @@ from slam.core.frame import FeatureFrame
 from slam.core.geometry import invert
 from slam.core.timing import ModuleTimer
 from slam.runtime.graph_process import GraphProcess, GraphSpec
-from slam.runtime.inputs import check_inputs, clean_depth
+from slam.runtime.inputs import check_inputs, clean_depth, to_gray
 from slam.runtime.lookahead import FrameLookahead, UpcomingFrame
 from slam.runtime.tracking_loop import FrameOutput, TrackingLoop
 
@@ -114,7 +114,7 @@ class System:
         predicted_T_cw, last_T_cw = tracker.predicted_T_cw(), tracker.last_T_cw
         if begun is None:
             with self.timer.measure("extract"):
-                gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)
+                gray = to_gray(rgb)
         else:
             gray = begun.gray
         # The image-only dynamic work (detector, cpr) runs on threads while the features are extracted
