@@ -186,7 +186,8 @@ class BackendConfig(ConfigSection):
     and 0.0132 -> 0.0127 m (one run each). A loop's bundle adjustment (at most loop_iterations) uses it too:
     the loop keyframe waits for it, Bonn-480's back end on the tracking path 13.9 -> 9.4 ms per frame, ATE
     fr1/rpy 0.0215 / Bonn 0.0124 m, the same loop residuals within 1 mm, the drift room of
-    tests/test_loop_closing.py 0.0190 m (was 0.0192). The final adjustment keeps 1e-5."""
+    tests/test_loop_closing.py 0.0190 m (was 0.0192). The final adjustment stops at 1e-3 too
+    (``WindowParams.final_relative_tol``: the same final trajectory within 0.25 mm, a third of its time)."""
     essential_min_shared: int = Field(100, ge=1)
     """Loop correction: keyframe pairs sharing this many landmarks are tied in the pose graph (ORB-SLAM: 100)."""
     final_global_ba: bool = True
