@@ -15,7 +15,7 @@ _PUBLIC = {
     "System": "slam.runtime.system",
     "FrameOutput": "slam.runtime.system",
     "Pipeline": "slam.run.pipeline",
-    "RunSummary": "slam.run.pipeline",
+    "RunSummary": "slam.run.run_results",
     "SlamConfig": "slam.core.config",
     "load_config": "slam.core.config",
     "ConfigError": "slam.core.config",

@@ -40,62 +40,27 @@ end of the run; without any the pipeline does no extra work.
 """
 from __future__ import annotations
 
-import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional, Protocol, Sequence
+from typing import Callable, Optional, Protocol, Sequence
 
 import numpy as np
 
-from frontend.dynamic_filter import method_names
 from slam.core.config import SlamConfig
 from slam.datasets.base import RGBDDataset, RGBDFrame
 from slam.datasets.replay import RealtimeReplay
-from slam.run.evaluation import EvaluationError, EvaluationReport, evaluate, format_report
+from slam.run.evaluation import EvaluationReport, format_report
 from slam.run.input_checks import InputChecks
 from slam.run.interrupts import DeferredInterrupt
 from slam.runtime.system import FrameOutput, System, UpcomingFrame
 from slam.core.atomic_io import ensure_output_dir, write_text_atomic
 from slam.run.run_artifacts import RunArtifacts, needs_keyframe_copies
-from slam.run.trajectory import TumStreamWriter, format_tum_line, tum_rows_from_poses, write_tum
+from slam.run.run_results import (RunSummary, evaluate_run, summarize_system, write_dynamic_counts,
+                                  write_final_poses, write_graph, write_summary)
+from slam.run.trajectory import TumStreamWriter
 
 log = logging.getLogger("dynslam")
-
-
-
-@dataclass
-class RunSummary:
-    dataset: str
-    output_dir: str
-    dataset_path: Optional[str] = None     # folder or file the frames came from (None: generated)
-    frames: int = 0
-    tracked: int = 0
-    lost: int = 0
-    keyframes: int = 0
-    landmarks: int = 0
-    wall_time_s: float = 0.0
-    timing_ms: dict[str, dict[str, float]] = field(default_factory=dict)
-    ate_rmse_m: Optional[float] = None
-    lost_frames: list[int] = field(default_factory=list)
-    skipped_files: list[str] = field(default_factory=list)    # unreadable, corrupt or wrong size (while running)
-    missing_files: list[str] = field(default_factory=list)    # listed but absent, found when opening
-    no_depth_frames: list[int] = field(default_factory=list)  # frames without a single valid depth pixel
-    interrupted: bool = False                                 # stopped (Ctrl-C) before the last frame
-    dropped_frames: Optional[int] = None                      # live camera / realtime replay: frames never
-                                                              # processed (newest frame wins); None: dataset mode
-    realtime: bool = False                                    # runtime.realtime: paced by the source, not deterministic
-    dynamic_methods: list[str] = field(default_factory=list)
-    dynamic_flagged: dict[str, dict[str, float]] = field(default_factory=dict)  # per method and fused
-    loops: list[dict[str, Any]] = field(default_factory=list)   # every loop factor added, with timestamps
-    place_recognition: dict[str, Any] = field(default_factory=dict)  # loop / relocalization counts and ms
-    # Tracked frames' pose uncertainty (FrameOutput.pose_sigma_m, mm): median, p95, max and the frame of the
-    # max; a weakly held stretch (few static features) shows here before it shows in the error.
-    pose_sigma_mm: dict[str, float] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 def _paced(dataset, config: SlamConfig):
@@ -286,47 +251,20 @@ class Pipeline:
             raise error
 
     def _write_result_poses(self) -> None:
-        stamps, poses, tracked = self.system.trajectory()
-        lines = ["# timestamp tx ty tz qx qy qz qw (untracked frames: '# timestamp LOST')"]
-        rows = tum_rows_from_poses(poses[tracked]) if tracked.any() else np.zeros((0, 7))
-        tracked_rows = iter(rows)
-        for t, ok in zip(stamps, tracked):
-            lines.append(format_tum_line(t, next(tracked_rows)).rstrip("\n") if ok else f"# {t:.6f} LOST")
-        write_text_atomic(self.output_dir / "trajectory.txt", "\n".join(lines) + "\n")
-        kf_t, kf_poses = self.system.keyframe_trajectory()
-        write_tum(self.output_dir / "keyframes.txt", kf_t, kf_poses)
-        self.summary.keyframes = self.system.num_keyframes
-        self.summary.landmarks = self.system.num_landmarks
-        self.summary.timing_ms = self.system.timer.summary()
-        # What ran, not what was asked: without a detector model only the detector-free methods run.
-        self.summary.dynamic_methods = method_names(self.system.dynamic_filter)
-        stats = self.system.dynamic_filter.stats
-        if stats is not None:
-            self.summary.dynamic_flagged = stats.summary()
-            self._write_dynamic_counts(stats.flagged)
-        self.summary.loops, self.summary.place_recognition = self.system.place_recognition_report()
+        """trajectory.txt, keyframes.txt (and their other formats), dynamic.csv, and the summary's counts."""
+        write_final_poses(self.output_dir, self.system, self.config.output.trajectory_formats)
+        summarize_system(self.summary, self.system)
+        write_dynamic_counts(self.output_dir, self.system)
         skipped = list(getattr(self.dataset, "skipped", [])) + self.checks.skipped
         self.summary.skipped_files = [f"{p}: {why}" for p, why in skipped]
         self.summary.no_depth_frames = list(self.checks.no_depth_frames)
         self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
         dropped = getattr(self.dataset, "dropped", None)
         self.summary.dropped_frames = None if dropped is None else int(dropped)
-        from slam.run.trajectory_formats import export_formats
-
-        export_formats(self.output_dir, self.config.output.trajectory_formats)
 
     def _write_graph(self) -> None:
-        """graph.g2o and graph.json: the optimised keyframe graph (odometry + covisibility edges)."""
-        from backend.graph_export import export_g2o, export_json, graph_edges_from_mapper, loop_edges, mapper_keyframes
-
-        mapper = self.system.mapper
-        if mapper.map.num_keyframes == 0 or self.system.localization_only:
-            return
-        ids, stamps, poses = mapper_keyframes(mapper)
-        edges = graph_edges_from_mapper(mapper, self.config.backend.covisibility_min_shared)
-        edges += loop_edges(self.system.loop_closer.loops, self.config.loop.sigma_t, self.config.loop.sigma_r_deg)
-        export_g2o(self.output_dir / "graph.g2o", ids, poses, edges)
-        export_json(self.output_dir / "graph.json", ids, stamps, poses, edges)
+        if not self.system.localization_only:
+            write_graph(self.output_dir, self.system, self.config)
 
     def _save_map(self) -> None:
         if self.save_map_path is None:
@@ -334,40 +272,13 @@ class Pipeline:
         self.system.save_map(self.save_map_path)
         log.info("map saved to %s", self.save_map_path)
 
-    def _write_dynamic_counts(self, flagged: dict[str, list[int]]) -> None:
-        """dynamic.csv: per frame, how many features each method and the fusion flagged."""
-        names = list(flagged)
-        stamps = self.system.trajectory(smoothed=False)[0]
-        rows = ["timestamp," + ",".join(names)]
-        for i in range(min([len(stamps)] + [len(v) for v in flagged.values()])):
-            rows.append(f"{stamps[i]:.6f}," + ",".join(str(flagged[n][i]) for n in names))
-        write_text_atomic(self.output_dir / "dynamic.csv", "\n".join(rows) + "\n")
-
     def _run_evaluation(self) -> None:
-        gt = self.dataset.groundtruth()
-        if gt is None:
-            return
-        if getattr(self.dataset, "root", None) is None:  # generated: keep the exact path beside the result
-            write_tum(self.output_dir / "groundtruth.txt", *gt)
-        stamps, poses, tracked = self.system.trajectory()
-        try:
-            self.report = evaluate(gt[0], gt[1], stamps[tracked], poses[tracked], self.config.max_association_dt,
-                                   "groundtruth", str(self.output_dir / "trajectory.txt"))
-        except EvaluationError as exc:
-            log.warning("evaluation skipped: %s", exc)
-            return
-        self.summary.ate_rmse_m = self.report.ate.rmse
-        write_text_atomic(self.output_dir / "evaluation.json", json.dumps(self.report.to_dict(), indent=2) + "\n")
+        self.report = evaluate_run(self.output_dir, self.dataset, self.system, self.config.max_association_dt)
+        if self.report is not None:
+            self.summary.ate_rmse_m = self.report.ate.rmse
 
     def _write_summary(self) -> None:
-        if self._pose_sigmas:
-            sigma = np.array([s for s, _ in self._pose_sigmas]) * 1e3
-            worst = int(np.argmax(sigma))
-            self.summary.pose_sigma_mm = {"median": round(float(np.median(sigma)), 3),
-                                          "p95": round(float(np.percentile(sigma, 95)), 3),
-                                          "max": round(float(sigma[worst]), 3),
-                                          "max_frame": int(self._pose_sigmas[worst][1])}
-        write_text_atomic(self.output_dir / "summary.json", json.dumps(self.summary.to_dict(), indent=2) + "\n")
+        write_summary(self.output_dir, self.summary, self._pose_sigmas)
 
     def _expected_frames(self) -> Optional[int]:
         """Frames this run will process if it is not stopped (None when the dataset has no length)."""

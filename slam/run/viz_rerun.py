@@ -44,7 +44,7 @@ from slam.core.config import SlamConfig
 from slam.core.errors import DynslamError, RuntimeFailure
 from slam.datasets.base import RGBDFrame
 from slam.run.evaluation import EvaluationReport
-from slam.run.pipeline import RunSummary
+from slam.run.run_results import RunSummary
 from slam.run.sparse_map import sparse_points
 from slam.runtime.system import FrameOutput, System
 
