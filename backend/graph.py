@@ -20,6 +20,7 @@ needs them to converge after relinearisation, see docs/engineering notes).
 """
 from __future__ import annotations
 
+import time
 from typing import Iterable, Optional
 
 import gtsam
@@ -50,6 +51,7 @@ class FactorGraphBackend:
         self._landmarks: set[int] = set()
         self._estimate: Optional[gtsam.Values] = None
         self._relative: dict[int, tuple[int, int, np.ndarray]] = {}   # handle -> (a, b, T_ab) of pose factors
+        self.update_cpu_ms: list[float] = []        # thread CPU of every update (GraphBackend)
 
     # --- variables ------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, T_wc_guess: np.ndarray) -> None:
@@ -130,6 +132,13 @@ class FactorGraphBackend:
     def update(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
         """Add pending factors and variables and solve. ``relinearize`` relinearises on every one of
         the updates whatever ``relinearize_skip`` says: after a loop, many variables move far."""
+        start = time.thread_time()
+        try:
+            self._update(extra_updates, relinearize)
+        finally:
+            self.update_cpu_ms.append((time.thread_time() - start) * 1e3)
+
+    def _update(self, extra_updates: Optional[int], relinearize: bool) -> None:
         graph = gtsam.NonlinearFactorGraph()
         handles = list(self._pending_factors)
         for handle in handles:
@@ -154,7 +163,7 @@ class FactorGraphBackend:
 
     def optimize_all(self, iterations: Optional[int] = None) -> None:
         """iSAM2 already holds the whole map's solution: ``iterations`` more updates, relinearising."""
-        self.update(extra_updates=iterations, relinearize=True)
+        self._update(iterations, True)     # not a keyframe's update: not in update_cpu_ms
 
     # --- estimates ------------------------------------------------------------------------------
     def keyframe_pose(self, kf_id: int) -> np.ndarray:

@@ -6,7 +6,7 @@ consecutive integers, one per factor added (priors included), so a caller can pr
 """
 from __future__ import annotations
 
-from typing import Iterable, Optional, Protocol
+from typing import Iterable, Optional, Protocol, Sequence
 
 import numpy as np
 
@@ -48,3 +48,9 @@ class GraphBackend(Protocol):
 
     @property
     def num_factors(self) -> int: ...
+
+    @property
+    def update_cpu_ms(self) -> Sequence[float]:
+        """CPU milliseconds of every ``update`` applied so far, in order: what the back end costs per
+        keyframe, wherever it runs (a worker process measures its own, graph building included)."""
+        ...

@@ -25,6 +25,7 @@ from 74 ms to 2 s per keyframe and 4 GB of memory (loops make the Bayes tree's t
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Iterable, Optional
 
@@ -138,6 +139,7 @@ class LocalWindowBackend(LoopCorrection):
         self._focus: Optional[int] = None
         self._solved = False
         self.last_window: tuple[int, int, int] = (0, 0, 0)     # keyframes, fixed keyframes, landmarks
+        self.update_cpu_ms: list[float] = []                    # thread CPU of every update (GraphBackend)
 
     # --- variables ------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, T_wc_guess: np.ndarray) -> None:
@@ -216,6 +218,13 @@ class LocalWindowBackend(LoopCorrection):
     def update(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
         """Adjust the window around the newest keyframe; with ``relinearize`` (a loop changed) first
         correct the loop (``window_loops.LoopCorrection``). ``extra_updates`` is iSAM2's and ignored here."""
+        start = time.thread_time()
+        try:
+            self._update(relinearize)
+        finally:
+            self.update_cpu_ms.append((time.thread_time() - start) * 1e3)
+
+    def _update(self, relinearize: bool) -> None:
         new, self._new_keyframes = self._new_keyframes, []
         span_start, self._span_start = self._span_start, None
         added, self._added_relative = self._added_relative, []

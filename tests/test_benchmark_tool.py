@@ -15,6 +15,12 @@ def test_backend_cost_is_the_median_of_the_keyframes_up_to_each_mark():
     assert at == {50: 45.5, 100: 95.5}    # keyframes 41-50 and 91-100; 200 and 500 not reached
 
 
+def test_mapping_line_gives_the_median_update_and_the_marks_reached():
+    line = benchmark.mapping_line(np.arange(1.0, 61.0))     # the k-th update costs k ms
+    assert "median 30.5 over 60" in line and "@50 45.5" in line and "@100" not in line
+    assert benchmark.mapping_line(np.zeros(0)) == "mapping back end: no keyframe update"
+
+
 def test_speed_table_has_the_ratio_to_the_peer_and_dashes_for_what_is_missing():
     rows = [{"system": "dynslam", "sequence": "seq", "whole_run_ms_per_frame": 30.0,
              "latency_ms": {"median": 20.0, "p95": 50.0}, "backend_ms_at_keyframes": {50: 40.0}},

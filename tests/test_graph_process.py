@@ -45,6 +45,21 @@ def test_same_estimates_as_in_process_once_synced(process_graph):
     assert process_graph.num_factors == inline.num_factors
 
 
+@pytest.mark.parametrize("optimizer", ["window", "isam2"])
+def test_every_back_end_reports_its_cpu_per_update_wherever_it_solves(process_graph, optimizer):
+    """update_cpu_ms: one entry per keyframe update, in line and from the worker (its own CPU, measured
+    there), none for the end-of-run adjustment; the benchmark reports it per keyframe."""
+    inline = build_graph(BackendConfig(window_keyframes=4, optimizer=optimizer), RING_CALIBRATION)
+    run_ring(inline, 8)
+    inline.optimize_all()
+    run_ring(process_graph, 8)
+    process_graph.sync()
+    process_graph.optimize_all()
+    for graph in (inline, process_graph):
+        assert len(graph.update_cpu_ms) == 8
+        assert all(ms > 0 for ms in graph.update_cpu_ms)
+
+
 def test_results_arrive_one_update_later(process_graph):
     """Update n's result is applied when update n + 1 is called: which estimates tracking sees depends
     on the call sequence only, not on how fast the worker is."""

@@ -15,7 +15,9 @@ benchmark.json):
   the ratio of dynslam's whole-run time to it;
 - CPU time by thread and process per frame (``tools/cpu_usage.py``: the tracking thread, the mapping worker,
   the detector, cpr, ORB lookahead and reader threads), and all of it divided by the cores: a lower bound of
-  the whole-run time (near it, the run is CPU-bound); each dynamic method's median wall ms per frame;
+  the whole-run time (near it, the run is CPU-bound); the mapping back end's own CPU per keyframe update
+  around the same marks (``GraphBackend.update_cpu_ms``: measured in the worker process, graph building
+  included); each dynamic method's median wall ms per frame;
 - accuracy and modules: ATE RMSE, median ms per frame per module, loops and relocalization;
 - with ``--long-run N`` (issue 10 asks N >= 5,000): ``tools/memory.py`` on N frames of the generated orbit,
   which returns to its start pose every 1,885 frames, in its own process: mean per-frame step over the
@@ -75,6 +77,8 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
         "cpu_s": cpu.seconds,           # by thread / process (tools/cpu_usage.py)
         "latency_ms": {"median": float(np.median(total_ms)), "p95": float(np.percentile(total_ms, 95))},
         "backend_ms_at_keyframes": backend_cost_at_marks(keyframe_ms),
+        # the mapping back end's own CPU per keyframe update (in the worker process by default)
+        "mapping_update_cpu_ms": [float(x) for x in pipeline.system.mapper.graph.update_cpu_ms],
         "system": "dynslam", "sequence": sequence.name, "frames": summary.frames, "tracked": summary.tracked,
         "keyframes": summary.keyframes, "ate_rmse_m": summary.ate_rmse_m,
         "median_ms": {m: summary.timing_ms.get(m, {}).get("median_ms", 0.0) for m in MODULES},
@@ -157,6 +161,17 @@ def markdown_table(rows: list[dict]) -> str:
                      f"{r.get('relocalizations', '–')} | {_num(r.get('reloc_ms_per_attempt'))}, "
                      f"{_num(r.get('reloc_ms_max'))} |")
     return "\n".join(lines)
+
+
+def mapping_line(update_ms: np.ndarray) -> str:
+    """The back end's own CPU per keyframe update (what the worker spends, off the tracking path): the
+    median over the run and around each mark it reached."""
+    if len(update_ms) == 0:
+        return "mapping back end: no keyframe update"
+    at_marks = backend_cost_at_marks(update_ms)
+    marks = "".join(f", @{mark} {ms:.1f}" for mark, ms in sorted(at_marks.items()))
+    return (f"mapping back end, CPU ms per keyframe update: median {np.median(update_ms):.1f} over "
+            f"{len(update_ms)}{marks} (median of the {KEYFRAME_WINDOW} up to each mark)")
 
 
 def method_line(method_ms: dict[str, float]) -> str:
@@ -249,6 +264,7 @@ def main(argv=None) -> int:
                 rows.append(run_peer(args.peer, seq, Path(tmp)))
     table = speed_table(rows) + "\n\n" + markdown_table(rows) + "\n\n" + "\n".join(
         f"{r['sequence']}: {cpu_line(r['cpu_s'], r['frames'], r['whole_run_s'])}\n"
+        f"{r['sequence']}: {mapping_line(np.asarray(r.get('mapping_update_cpu_ms', [])))}\n"
         f"{r['sequence']}: {method_line(r.get('method_ms', {}))}" for r in rows
         if r["system"] == "dynslam" and r.get("cpu_s"))
     long_report = None

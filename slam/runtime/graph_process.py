@@ -36,6 +36,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import signal
 import sys
+import time
 import traceback
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -93,13 +94,15 @@ def _serve(spec: GraphSpec, conn) -> None:
         if batch is None:
             return
         step = "?"
+        start = time.thread_time()
         try:
             for command in batch:
                 step = command[0]
                 expected = _apply(graph, command)
                 if expected is not None and expected[0] != expected[1]:
                     raise BackendError(f"factor handle {expected[0]} where the main process counted {expected[1]}")
-            conn.send(("ok", graph.keyframe_poses(), graph.landmark_positions()))
+            # The batch's CPU (its factors built, its update solved): the worker's cost per keyframe.
+            conn.send(("ok", graph.keyframe_poses(), graph.landmark_positions(), (time.thread_time() - start) * 1e3))
         except Exception as exc:   # noqa: BLE001 - every failure goes back to the main process, named
             conn.send(("error", step, f"{type(exc).__name__}: {exc}", traceback.format_exc()))
 
@@ -153,6 +156,8 @@ class GraphProcess:
         child.close()
         self._batch: list[tuple] = []
         self._in_flight = False
+        self._update_in_flight = False            # the batch in flight holds an update (not only optimize_all)
+        self.update_cpu_ms: list[float] = []      # the worker's CPU per update batch (GraphBackend)
         self._keyframes: set[int] = set()
         self._landmarks: set[int] = set()
         self._live: set[int] = set()
@@ -336,6 +341,7 @@ class GraphProcess:
         except (BrokenPipeError, OSError) as exc:
             raise self._died() from exc
         self._in_flight = True
+        self._update_in_flight = any(c[0] == "update" for c in batch)
 
     def _collect(self) -> None:
         if not self._in_flight:
@@ -353,7 +359,9 @@ class GraphProcess:
         if reply[0] == "error":
             _, step, message, trace = reply
             raise BackendError(f"mapping worker failed in '{step}': {message}\n{trace}")
-        _, (self._kf_ids, self._kf_poses), (self._lm_ids, self._lm_xyz) = reply
+        _, (self._kf_ids, self._kf_poses), (self._lm_ids, self._lm_xyz), cpu_ms = reply
+        if self._update_in_flight:
+            self.update_cpu_ms.append(cpu_ms)
         self._solved_relative = self._sent_relative & set(self._relative)
 
     def _died(self) -> BackendError:
