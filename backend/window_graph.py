@@ -45,10 +45,7 @@ class WindowParams:
 
     window_keyframes: int = 6
     iterations: int = 10
-    relative_tol: float = 1e-2    # a window's adjustment stops when an iteration improves its cost by less
-    # A loop's bundle adjustment stops at this: it corrects a whole span once, and the drift room of
-    # tests/test_loop_closing.py was measured with it (0.0190 m).
-    loop_relative_tol: float = 1e-3
+    relative_tol: float = 1e-2    # a window or loop adjustment stops when an iteration improves its cost by less
     pose_graph_iterations: int = 30
     loop_iterations: int = 5      # the bundle adjustment over a loop's span after its pose graph (0: none)
     # A loop's bundle adjustment: 60 keyframes cover the loops of the TUM/Bonn sequences whole (~2 s, the

@@ -30,7 +30,7 @@ class LoopCorrection:
         before = self._poses.values[:n].copy()
         span = self._correct_with_pose_graph(span_start)
         if self.window.loop_iterations > 0 and span:
-            self._adjust(self._loop_window(span), self.window.loop_iterations, relative_tol=self.window.loop_relative_tol)
+            self._adjust(self._loop_window(span), self.window.loop_iterations, relative_tol=self.window.relative_tol)
         slots = np.fromiter((self._poses.slot[k] for k in span), np.int64, len(span))
         correction = self._poses.values[slots] @ np.linalg.inv(before[slots])
         for h in added:
