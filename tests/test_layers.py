@@ -159,6 +159,6 @@ def test_pyproject_lists_every_package_and_ships_the_presets():
 
     setuptools_cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     in_tree = {module_name(p.parent / "__init__.py") for pkg in PACKAGES for p in (REPO / pkg).rglob("__init__.py")}
-    assert set(setuptools_cfg["packages"]) == in_tree | {"slam.presets"}
+    assert set(setuptools_cfg["packages"]) == in_tree | {"slam.presets", "backend.data"}   # + the data folders
     assert setuptools_cfg["package-dir"] == {"slam.presets": "configs"}
     assert setuptools_cfg["package-data"]["slam.presets"] == ["*.yaml"]
