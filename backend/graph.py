@@ -20,7 +20,6 @@ needs them to converge after relinearisation, see docs/engineering notes).
 """
 from __future__ import annotations
 
-import time
 from typing import Iterable, Optional
 
 import gtsam
@@ -30,6 +29,7 @@ from gtsam.symbol_shorthand import L, X
 # re-exported: the public names of the back end's core (backend/__init__.py, README)
 from backend.factors import BackendError, BackendParams, FactorBuilder, StereoCalibration, pose3
 from slam.core.geometry import relative_pose_residual
+from slam.core.timing import thread_cpu_ms
 
 __all__ = ["BackendError", "BackendParams", "FactorGraphBackend", "StereoCalibration", "pose3"]
 
@@ -132,11 +132,8 @@ class FactorGraphBackend:
     def update(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
         """Add pending factors and variables and solve. ``relinearize`` relinearises on every one of
         the updates whatever ``relinearize_skip`` says: after a loop, many variables move far."""
-        start = time.thread_time()
-        try:
+        with thread_cpu_ms(self.update_cpu_ms):
             self._update(extra_updates, relinearize)
-        finally:
-            self.update_cpu_ms.append((time.thread_time() - start) * 1e3)
 
     def _update(self, extra_updates: Optional[int], relinearize: bool) -> None:
         graph = gtsam.NonlinearFactorGraph()

@@ -25,7 +25,6 @@ from 74 ms to 2 s per keyframe and 4 GB of memory (loops make the Bayes tree's t
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Iterable, Optional
 
@@ -35,6 +34,7 @@ from gtsam.symbol_shorthand import L, X
 
 from slam.core.config import BackendConfig
 from slam.core.geometry import relative_pose_residual
+from slam.core.timing import thread_cpu_ms
 from backend.factors import BackendError, BackendParams, FactorBuilder, StereoCalibration, pose3
 from backend.window_loops import LoopCorrection
 
@@ -215,11 +215,8 @@ class LocalWindowBackend(LoopCorrection):
     def update(self, extra_updates: Optional[int] = None, relinearize: bool = False) -> None:
         """Adjust the window around the newest keyframe; with ``relinearize`` (a loop changed) first
         correct the loop (``window_loops.LoopCorrection``). ``extra_updates`` is iSAM2's and ignored here."""
-        start = time.thread_time()
-        try:
+        with thread_cpu_ms(self.update_cpu_ms):
             self._update(relinearize)
-        finally:
-            self.update_cpu_ms.append((time.thread_time() - start) * 1e3)
 
     def _update(self, relinearize: bool) -> None:
         new, self._new_keyframes = self._new_keyframes, []

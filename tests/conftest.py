@@ -467,6 +467,34 @@ def _rs_camera_info(types, header, camera: tuple, model: str, coeffs=(0.0,) * 5)
         binning_x=0, binning_y=0, roi=roi)
 
 
+def _rs_header(types, t: float, seq_no: int = 0):
+    stamp = types["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
+    return types["std_msgs/msg/Header"](seq=seq_no, stamp=stamp, frame_id="0")
+
+
+def _rs_transform(types, T_ref: np.ndarray):
+    q = Rotation.from_matrix(T_ref[:3, :3]).as_quat()
+    return types["geometry_msgs/msg/Transform"](
+        translation=types["geometry_msgs/msg/Vector3"](x=T_ref[0, 3], y=T_ref[1, 3], z=T_ref[2, 3]),
+        rotation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+
+
+def _rs_topics(depth_stream: bool, depth_info: bool, extrinsics: bool, units_topic: bool) -> list[tuple[str, str]]:
+    """(topic, message type) of a librealsense bag, less the parts a test leaves out."""
+    topics = [("/file_version", "std_msgs/msg/UInt32"), (f"{RS_COLOUR}/image/data", "sensor_msgs/msg/Image"),
+              (f"{RS_COLOUR}/info/camera_info", "sensor_msgs/msg/CameraInfo")]
+    if depth_stream:
+        topics.append((f"{RS_DEPTH}/image/data", "sensor_msgs/msg/Image"))
+    if depth_info and depth_stream:
+        topics.append((f"{RS_DEPTH}/info/camera_info", "sensor_msgs/msg/CameraInfo"))
+    if extrinsics:
+        topics += [(f"{RS_COLOUR}/tf/0", "geometry_msgs/msg/Transform"),
+                   (f"{RS_DEPTH}/tf/0", "geometry_msgs/msg/Transform")]
+    if units_topic:
+        topics.append((RS_UNITS_TOPIC, "std_msgs/msg/Float32"))
+    return topics
+
+
 def write_realsense_bag(path: Path, seq: SyntheticSequence, depth_camera: Optional[tuple] = None,
                         T_colour_depth: Optional[np.ndarray] = None, depth_units: Optional[float] = 0.001,
                         extrinsics: bool = True, depth_info: bool = True, depth_stream: bool = True,
@@ -485,51 +513,31 @@ def write_realsense_bag(path: Path, seq: SyntheticSequence, depth_camera: Option
     T = rs_extrinsic() if T_colour_depth is None else T_colour_depth
     units = 0.001 if depth_units is None else depth_units
     cache: dict = {}
-
-    def header(t: float, seq_no: int = 0):
-        stamp = types["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
-        return types["std_msgs/msg/Header"](seq=seq_no, stamp=stamp, frame_id="0")
-
-    def transform(T_ref: np.ndarray):
-        q = Rotation.from_matrix(T_ref[:3, :3]).as_quat()
-        return types["geometry_msgs/msg/Transform"](
-            translation=types["geometry_msgs/msg/Vector3"](x=T_ref[0, 3], y=T_ref[1, 3], z=T_ref[2, 3]),
-            rotation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
-
-    topics = [("/file_version", "std_msgs/msg/UInt32"), (f"{RS_COLOUR}/image/data", "sensor_msgs/msg/Image"),
-              (f"{RS_COLOUR}/info/camera_info", "sensor_msgs/msg/CameraInfo")]
-    if depth_stream:
-        topics.append((f"{RS_DEPTH}/image/data", "sensor_msgs/msg/Image"))
-    if depth_info and depth_stream:
-        topics.append((f"{RS_DEPTH}/info/camera_info", "sensor_msgs/msg/CameraInfo"))
-    if extrinsics:
-        topics += [(f"{RS_COLOUR}/tf/0", "geometry_msgs/msg/Transform"),
-                   (f"{RS_DEPTH}/tf/0", "geometry_msgs/msg/Transform")]
-    if depth_units is not None:
-        topics.append((RS_UNITS_TOPIC, "std_msgs/msg/Float32"))
     with Writer(path) as writer:
-        conns = {topic: writer.add_connection(topic, msgtype, typestore=store) for topic, msgtype in topics}
+        conns = {topic: writer.add_connection(topic, msgtype, typestore=store)
+                 for topic, msgtype in _rs_topics(depth_stream, depth_info, extrinsics, depth_units is not None)}
 
         def put(topic, msg, t):
-            if topic in conns:
+            if topic in conns:     # a topic left out is not written
                 writer.write(conns[topic], int(round(t * 1e9)), store.serialize_ros1(msg, msg.__msgtype__))
 
         put("/file_version", types["std_msgs/msg/UInt32"](data=3), 0.0)
-        put(f"{RS_COLOUR}/info/camera_info", _rs_camera_info(types, header(0.0), colour_camera,
+        put(f"{RS_COLOUR}/info/camera_info", _rs_camera_info(types, _rs_header(types, 0.0), colour_camera,
                                                              colour_model, colour_coeffs), 0.0)
-        put(f"{RS_DEPTH}/info/camera_info", _rs_camera_info(types, header(0.0), depth_camera, "Brown Conrady"), 0.0)
-        put(f"{RS_COLOUR}/tf/0", transform(T), 0.0)          # reference: the depth stream
-        put(f"{RS_DEPTH}/tf/0", transform(np.eye(4)), 0.0)
+        put(f"{RS_DEPTH}/info/camera_info", _rs_camera_info(types, _rs_header(types, 0.0), depth_camera,
+                                                            "Brown Conrady"), 0.0)
+        put(f"{RS_COLOUR}/tf/0", _rs_transform(types, T), 0.0)          # reference: the depth stream
+        put(f"{RS_DEPTH}/tf/0", _rs_transform(types, np.eye(4)), 0.0)
         put(RS_UNITS_TOPIC, types["std_msgs/msg/Float32"](data=units), 0.0)
         for frame in seq:
             t = START_S + frame.timestamp
             rgb = np.ascontiguousarray(frame.rgb[..., ::-1])
-            put(f"{RS_COLOUR}/image/data", _image(types, header(t, frame.index), rgb, "rgb8"), t)
+            put(f"{RS_COLOUR}/image/data", _image(types, _rs_header(types, t, frame.index), rgb, "rgb8"), t)
             if depth_stream:
                 depth = render_depth_camera(seq, frame.index, depth_camera, T, cache)
                 raw = np.clip(np.round(depth / (units or 0.001)), 0, 65535).astype(np.uint16)   # 0: a bad units topic
                 td = t + RS_DEPTH_DELAY_S
-                put(f"{RS_DEPTH}/image/data", _image(types, header(td, frame.index), raw, "mono16"), td)
+                put(f"{RS_DEPTH}/image/data", _image(types, _rs_header(types, td, frame.index), raw, "mono16"), td)
     return path
 
 

@@ -1,4 +1,4 @@
-"""Per-module wall-clock timing, kept per frame so the summary can report medians."""
+"""Per-module wall-clock timing, kept per frame so the summary can report medians; a block's thread CPU."""
 from __future__ import annotations
 
 import time
@@ -6,6 +6,17 @@ from collections import defaultdict
 from contextlib import contextmanager
 
 import numpy as np
+
+
+@contextmanager
+def thread_cpu_ms(record: list[float]):
+    """Append the calling thread's CPU milliseconds spent in the block to ``record`` (also when it raises):
+    a back end's cost per update, whatever other threads of the process do meanwhile."""
+    start = time.thread_time()
+    try:
+        yield
+    finally:
+        record.append((time.thread_time() - start) * 1e3)
 
 
 class ModuleTimer:

@@ -36,7 +36,6 @@ from __future__ import annotations
 import multiprocessing as mp
 import signal
 import sys
-import time
 import traceback
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -49,6 +48,7 @@ from backend.graph_protocol import GraphBackend
 from backend.local_mapping import build_graph
 from slam.core.config import BackendConfig
 from slam.core.geometry import relative_pose_residual
+from slam.core.timing import thread_cpu_ms
 
 
 @dataclass(frozen=True)
@@ -94,15 +94,15 @@ def _serve(spec: GraphSpec, conn) -> None:
         if batch is None:
             return
         step = "?"
-        start = time.thread_time()
+        cpu_ms: list[float] = []    # the batch's CPU (its factors built, its update solved): cost per keyframe
         try:
-            for command in batch:
-                step = command[0]
-                expected = _apply(graph, command)
-                if expected is not None and expected[0] != expected[1]:
-                    raise BackendError(f"factor handle {expected[0]} where the main process counted {expected[1]}")
-            # The batch's CPU (its factors built, its update solved): the worker's cost per keyframe.
-            conn.send(("ok", graph.keyframe_poses(), graph.landmark_positions(), (time.thread_time() - start) * 1e3))
+            with thread_cpu_ms(cpu_ms):
+                for command in batch:
+                    step = command[0]
+                    expected = _apply(graph, command)
+                    if expected is not None and expected[0] != expected[1]:
+                        raise BackendError(f"factor handle {expected[0]} where the main process counted {expected[1]}")
+            conn.send(("ok", graph.keyframe_poses(), graph.landmark_positions(), cpu_ms[0]))
         except Exception as exc:   # noqa: BLE001 - every failure goes back to the main process, named
             conn.send(("error", step, f"{type(exc).__name__}: {exc}", traceback.format_exc()))
 
