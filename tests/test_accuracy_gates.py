@@ -5,8 +5,9 @@ same table the README quotes); each case runs once per session as its own ``dyns
 (``accuracy_runs`` in conftest.py). Bounds: ATE at most 15 % above the measured baseline; Bonn with
 dynamic handling at least 20x better than off; fr1/rpy (no people) with dynamic handling within 10 %
 of off; loops on no worse than off; at least about half of today's loops, none off ground truth by
-more than 10 cm / 5 deg; every frame tracked (the blackout: exactly the blank frames lost, relocalized
-on the first frame after); two processes on the same input give byte-identical trajectories.
+more than 10 cm / 5 deg; every frame tracked (Bonn crowd: at most 12 frames LOST where people leave too
+little background; the blackout: exactly the blank frames lost, relocalized on the first frame after);
+two processes on the same input give byte-identical trajectories.
 """
 from __future__ import annotations
 

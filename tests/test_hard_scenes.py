@@ -107,11 +107,10 @@ def clean_ate() -> float:
     return evaluate_synthetic(seq, synthetic_config(seq, preset="dynamic_all")).ate_rmse
 
 
-# Measured at the commit that added them (python tools/hard_scenes.py): ATE / clean, worst tracked frame.
-# close_pass passed with the trajectory smoother (1.42x: 3.8 vs 2.7 mm, worst frame 12 mm).
-_NOT_YET = {
-    "three_close": "ATE 2.22x the clean path's (6.0 vs 2.7 mm), worst tracked frame 14.4 mm, 13 frames LOST",
-}
+# Scenes that miss the bar, with their measured numbers (python tools/hard_scenes.py): none today.
+# close_pass passed with the trajectory smoother (1.42x: 3.8 vs 2.7 mm, worst frame 12 mm); three_close
+# (2.22x: 6.0 vs 2.7 mm) once a frame fixed worse than 10 mm (1 sigma) is LOST (tracking.max_pose_sigma_m).
+_NOT_YET: dict[str, str] = {}
 
 
 @pytest.fixture(scope="module")

@@ -55,6 +55,9 @@ class Case:
     label: str
     baseline_ate: Optional[float] = None  # None: measured for a relation only, no gate of its own
     min_loops: int = 0                   # about half the loops found today (the camera really revisits)
+    # Frames that may be LOST honestly: where people leave the background too thin to fix the pose within
+    # tracking.max_pose_sigma_m. Twice the worst of seeds 0-2 today; 0 elsewhere: every frame tracked.
+    max_lost: int = 0
 
 
 # Baselines: python tools/accuracy.py, 2026-11-26, with the final (robust) trajectory smoother (backend.smoothing_sigma_acc).
@@ -64,7 +67,9 @@ CASES = {c.name: c for c in [
     Case("rpy_loops_off", RPY, ("run", "{seq}", "--set", "loop.enabled=false"), "fr1/rpy-400, loops off"),
     Case("rpy_blackout", RPY, ("run", "{seq}", "--blackout", f"{BLACKOUT[0]}:{BLACKOUT[1]}"),
          "fr1/rpy-400, frames 185-214 blank", 0.0217),
-    Case("bonn", BONN, ("run", "{seq}"), "Bonn crowd-480, default (dynamic handling on)", 0.0104, min_loops=3),
+    # Bonn's LOST frames over seeds 0-2: 1-6 (319, 446-450, where people fill most of the view).
+    Case("bonn", BONN, ("run", "{seq}"), "Bonn crowd-480, default (dynamic handling on)", 0.0104, min_loops=3,
+         max_lost=12),
     Case("bonn_static", BONN, ("run", "{seq}", "-c", "static"), "Bonn crowd-480, -c static"),
     # 0.0055 while the graph was solved in line; 0.0070 since it is solved in the worker process and its
     # results reach tracking one keyframe later (8 keyframes in 37 frames: in line 0.0061 with the window).
@@ -171,11 +176,15 @@ def gates(results: dict[str, CaseResult]) -> list[Gate]:
             bound = c.baseline_ate * ATE_TOLERANCE
             out.append(Gate(f"{c.label}: ATE RMSE (m)", r.ate, bound, r.ate <= bound,
                             f"baseline {c.baseline_ate} + 15 %"))
-        expected_lost = list(range(BLACKOUT[0], sum(BLACKOUT))) if name == "rpy_blackout" else []
         lost = r.summary["lost_frames"]
-        out.append(Gate(f"{c.label}: lost frames", len(lost), len(expected_lost), lost == expected_lost,
-                        "every frame tracked" if not expected_lost else "exactly the blank frames (relocalized "
-                        "on the first frame after)"))
+        if name == "rpy_blackout":
+            expected_lost = list(range(BLACKOUT[0], sum(BLACKOUT)))
+            out.append(Gate(f"{c.label}: lost frames", len(lost), len(expected_lost), lost == expected_lost,
+                            "exactly the blank frames (relocalized on the first frame after)"))
+        else:
+            out.append(Gate(f"{c.label}: lost frames", len(lost), c.max_lost, len(lost) <= c.max_lost,
+                            "every frame tracked" if not c.max_lost else
+                            "LOST only where people leave too little background: twice seeds 0-2's worst"))
         if c.min_loops:
             out.append(Gate(f"{c.label}: loops found", len(r.summary["loops"]), c.min_loops,
                             len(r.summary["loops"]) >= c.min_loops, "about half of those found today"))

@@ -163,13 +163,13 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
     scores.boundary_features = int((~keep).sum())
     for name, per_frame in flags.items():
         scores.precision[name], scores.recall[name] = precision_recall(np.concatenate(per_frame)[keep], truth)
+    system.close()   # the final updates and global adjustment first: the trajectory a run writes
     stamps, poses, tracked = system.trajectory()
     gt_t, gt_poses = sequence.groundtruth()
     result = ate(gt_t, gt_poses, stamps[tracked], poses[tracked])
     evaluation = SceneEvaluation(scores, masks, result.rmse, result.max, result.errors,
                                  [int(i) for i in np.flatnonzero(~tracked)], system.num_keyframes,
                                  {i: png for i, (png, _) in keyframe_masks.items()})
-    system.close()
     return evaluation
 
 
