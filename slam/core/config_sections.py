@@ -98,7 +98,8 @@ class TrackingConfig(ConfigSection):
     a keyframe left the frames after the crowd 10-19 mm off; LOST, they are 3-5 mm off). Swept at 25 / 15 / 10 mm, seeds 0-2
     (docs/dynamic.md): three_close ATE 5.9 / 4.9 / 4.0 mm, close_pass 3.8 / 3.1 / 2.9 mm (0 / 13 / 15
     frames LOST), Bonn crowd 0.0103 m at all three (0 / 0-3 / 1-6 frames LOST: 319 and 446-450, its known
-    weak stretch), fr1/rpy, stand_walk and border unchanged."""
+    weak stretch), fr1/rpy, stand_walk and border unchanged; at 5 mm ordinary frames go LOST (Bonn
+    426/480 tracked, three_close 45/150)."""
     min_init_features: int = Field(300, ge=0)
     pose_iterations: int = Field(10, ge=1)
     pose_rounds: int = Field(4, ge=1)
