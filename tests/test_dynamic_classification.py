@@ -92,3 +92,27 @@ def test_without_any_detection_moving_people_are_still_found_by_motion_alone():
                                 detector=_DetectorThatSeesNobody())
     masks = result.keyframe_masks["fused"]
     assert masks.recall >= 0.15 and masks.precision >= 0.8, (masks.precision, masks.recall)
+
+
+@pytest.mark.slow
+def test_scene_evaluation_scores_the_trajectory_a_run_writes():
+    """The ATE of ``evaluate_synthetic`` is that of the trajectory after ``System.close`` (the graph's last
+    updates and the final global adjustment), the one ``dynslam run`` writes; it once read the trajectory
+    before them, and the hard scenes' ratios then described poses no user gets."""
+    from slam.run.dynamic_eval import evaluate_synthetic
+    from slam.run.evaluation import ate
+
+    sequence = SyntheticSequence(n_frames=40, movers="people", seed=0)
+    seen = {}
+
+    def observe(frame, output, system):
+        seen["system"] = system
+        if frame.index == len(sequence) - 1:
+            seen["before_close"] = system.trajectory()
+
+    result = evaluate_synthetic(sequence, synthetic_config(sequence, preset="dynamic_all"), observer=observe)
+    gt_t, gt_poses = sequence.groundtruth()
+    stamps, poses, tracked = seen["system"].trajectory()          # closed by now
+    assert result.ate_rmse == ate(gt_t, gt_poses, stamps[tracked], poses[tracked]).rmse
+    before = seen["before_close"]
+    assert not np.array_equal(before[1][before[2]], poses[tracked])   # the final adjustment moved them
