@@ -44,6 +44,34 @@ def test_extractor_returns_about_n_features_on_every_level(orbit_features, defau
         assert (frame.dynamic_prob == 0).all()
 
 
+@pytest.mark.parametrize("masked", [False, True])
+def test_extractor_describes_only_the_kept_corners_with_the_same_bits(orbit_sequence, default_config, default_camera,
+                                                                      masked):
+    """extract() detects, keeps the grid's share and describes only those; the result must be the rows of
+    the kept corners of one detectAndCompute over all of them (the former path), masked or not."""
+    from frontend.orb_extractor import distribute_on_grid
+    frames, _ = orbit_sequence
+    extractor = OrbExtractor(default_config.orb, default_camera)
+    for f in frames[:3]:
+        gray = cv2.cvtColor(f.rgb, cv2.COLOR_BGR2GRAY)
+        mask = None
+        if masked:
+            mask = np.zeros(gray.shape, np.uint8)
+            mask[:, gray.shape[1] // 3:] = 255
+        frame = extractor.extract(gray, f.depth, mask=mask)
+        keypoints, descriptors = extractor._orb.detectAndCompute(gray, mask)
+        xy = np.array([k.pt for k in keypoints])
+        octave = np.array([k.octave for k in keypoints])
+        keep = distribute_on_grid(xy, np.array([k.response for k in keypoints]), octave, extractor.scale_factors,
+                                  extractor.quota, default_config.orb.cell_size)
+        assert len(keep) > 0.9 * default_config.orb.n_features * (2 / 3 if masked else 1)
+        np.testing.assert_array_equal(frame.descriptors, descriptors[keep])
+        np.testing.assert_array_equal(frame.uv_raw, xy[keep])
+        np.testing.assert_array_equal(frame.octaves, octave[keep])
+        if masked:
+            assert (frame.uv_raw[:, 0] >= gray.shape[1] // 3 - 1).all()
+
+
 def test_features_are_spread_over_the_image(orbit_features, default_camera):
     for frame in orbit_features:
         counts, _, _ = np.histogram2d(frame.uv_raw[:, 0], frame.uv_raw[:, 1], bins=(4, 4),
