@@ -5,6 +5,12 @@ pixel (p >= 0.5) against the exact masks.
 
     python tools/hard_scenes.py                               # all four, 150 frames, dynamic_all
     python tools/hard_scenes.py close_pass --frames 150 --preset dynamic_all --set tracking.x=...
+    python tools/hard_scenes.py --composite ../shared/data/rgbd_dataset_freiburg1_rpy_first400 [scenes]
+
+``--composite FOLDER`` puts the scripted people into a real sequence instead (slam/datasets/composite.py:
+its ground-truth camera path, its own frames behind the people; also ``two_walk`` and ``walk_stand``), all
+of its frames unless ``--frames`` is given, compared with the same frames untouched; the camera is the
+folder's (as ``dynslam run`` resolves it).
 
 The detector is the scene's ground-truth person boxes widened by 8 px (as `dynslam demo` uses), with the
 frames on which the scene's detector misses the person left out (``HardScene.detector_misses``).
@@ -13,38 +19,65 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 
 from slam.datasets import SyntheticSequence
+from slam.datasets.composite import COMPOSITE_SCENES, CompositeScene
 from slam.datasets.synthetic_scenes import HARD_SCENES, HardScene
 from slam.run.demo import DEMO_ORACLE_MARGIN_PX
-from slam.run.run_config import parse_overrides
+from slam.run.run_config import parse_overrides, resolve_run_config
 from slam.run.dynamic_eval import evaluate_synthetic, scene_detector, synthetic_config
 
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("scenes", nargs="*", default=list(HARD_SCENES), help=f"scenes to run (default: all of {', '.join(HARD_SCENES)})")
-    parser.add_argument("--frames", type=int, default=150)
+    parser.add_argument("scenes", nargs="*", help=f"scenes to run (default: all of {', '.join(HARD_SCENES)}; "
+                        f"with --composite also {', '.join(COMPOSITE_SCENES[len(HARD_SCENES) + 1:])})")
+    parser.add_argument("--frames", type=int, default=None, help="frames (default: 150; with --composite all)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", default="dynamic_all")
+    parser.add_argument("--composite", type=Path, default=None, metavar="FOLDER",
+                        help="a real TUM-layout sequence with groundtruth.txt to composite the people into")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value after the preset (repeatable)")
     args = parser.parse_args(argv)
-    unknown = sorted(set(args.scenes) - set(HARD_SCENES))
+    known = COMPOSITE_SCENES[1:] if args.composite else HARD_SCENES
+    scenes = args.scenes or list(known)
+    unknown = sorted(set(scenes) - set(known))
     if unknown:
-        parser.error(f"unknown scene(s) {', '.join(unknown)}; choose from {', '.join(HARD_SCENES)}")
+        parser.error(f"unknown scene(s) {', '.join(unknown)}; choose from {', '.join(known)}")
     overrides = parse_overrides(args.set)
-    clean_seq = SyntheticSequence(n_frames=args.frames, seed=args.seed)
-    clean = evaluate_synthetic(clean_seq, synthetic_config(clean_seq, preset=args.preset, **overrides))
-    print(f"same path without people: ATE {clean.ate_rmse * 1000:.1f} mm, worst frame {clean.max_error * 1000:.1f} mm")
+    if args.composite is not None:
+        if not (args.composite / "groundtruth.txt").is_file():
+            parser.error(f"--composite {args.composite}: not a sequence folder with groundtruth.txt")
+        config = resolve_run_config(args.composite, [args.preset], overrides)   # the folder's own camera
+        intrinsics = (config.camera.fx, config.camera.fy, config.camera.cx, config.camera.cy)
+
+        def make(name: str):
+            return CompositeScene(name, args.composite, intrinsics, n_frames=args.frames, seed=args.seed)
+
+        def config_of(seq):
+            return resolve_run_config(args.composite, [args.preset], overrides)
+    else:
+        frames = args.frames or 150
+
+        def make(name: str):
+            return HardScene(name, n_frames=frames, seed=args.seed)
+
+        def config_of(seq):
+            return synthetic_config(seq, preset=args.preset, **overrides)
+    clean_seq = make("none") if args.composite is not None else SyntheticSequence(n_frames=frames, seed=args.seed)
+    clean = evaluate_synthetic(clean_seq, config_of(clean_seq))
+    print(f"same path without people: ATE {clean.ate_rmse * 1000:.1f} mm, worst frame {clean.max_error * 1000:.1f} mm, "
+          f"{len(clean.lost_frames)} LOST")
     rows = ["| scene | peak cover | misses | ATE mm | / clean | worst mm | LOST | fused P/R (features) "
             "| fused P/R (kf masks) |", "|---|---|---|---|---|---|---|---|---|"]
     details = []
-    for name in args.scenes:
-        scene = HardScene(name, n_frames=args.frames, seed=args.seed)
-        result = evaluate_synthetic(scene, synthetic_config(scene, preset=args.preset, **overrides),
+    for name in scenes:
+        scene = make(name)
+        result = evaluate_synthetic(scene, config_of(scene),
                                     detector=scene_detector(scene, DEMO_ORACLE_MARGIN_PX))
         cls, fused = result.classification, result.keyframe_masks.get("fused")
         mask_pr = f"{fused.precision:.2f} / {fused.recall:.2f}" if fused else "-"
