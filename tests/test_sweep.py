@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import REPO, load_tool
+from conftest import REPO, XYZ, load_tool, real_sequence
 
 TOOLS = REPO / "tools"
 
@@ -266,6 +266,37 @@ def test_hard_scene_sequences_parse_label_and_are_checked(tmp_path):
     sweep.check_spec(spec)
     assert sweep.make_jobs(spec, tmp_path)[0]["run_dir"] == str(tmp_path / "runs" / "hard_three_close__none__r0")
     assert sweep.main(["--sequences", "hard:no_such_scene", "--configs", "none"]) == 2
+
+
+def test_composite_sequences_parse_label_and_are_checked(tmp_path):
+    sequences = load_tool("sweep_sequences")
+    folder = real_sequence(XYZ)
+    spec = f"composite:two_walk:path={folder}"
+    assert sequences.composite_options(spec) == {"scene": "two_walk", "path": folder, "seed": 0}
+    relative = sequences.composite_options("composite:none:path=../shared/data/" + XYZ + ":seed=2")
+    assert relative["path"] == (REPO.parent / "shared" / "data" / XYZ).resolve() and relative["seed"] == 2
+    for bad in ("composite:two_walk", f"composite:nope:path={folder}", f"composite:two_walk:path={tmp_path}",
+                f"composite:two_walk:path={folder}:frames=3"):
+        with pytest.raises(sequences.SequenceSpecError):
+            sequences.composite_options(bad)
+    assert sweep.main(["--sequences", f"composite:two_walk:path={tmp_path}", "--configs", "none"]) == 2
+    args = sweep.build_parser().parse_args(["--sequences", spec, "--configs", "none"])
+    assert sweep.spec_from_args(args).sequences == [spec]   # a spec, not a folder to resolve
+
+
+@pytest.mark.slow
+def test_a_composite_sequence_runs_against_its_ground_truth(tmp_path):
+    """20 frames of fr1/xyz with three people composited: the run finishes with an ATE on the real frames'
+    ground truth, its detector the people's true boxes."""
+    spec = f"composite:three_close:path={real_sequence(XYZ)}"
+    argv = ["--sequences", spec, "--configs", "dynamic_all", "--max-frames", "20", "--jobs", "1",
+            "--output", str(tmp_path), "--quiet"]
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert sweep.main(argv) == 0
+    (row,) = read_csv(tmp_path / "sweep.csv")
+    assert row["status"] == "ok" and row["frames"] == "20"
+    # fr1/xyz's first 20 frames track to a few millimetres; composited people must not make that centimetres
+    assert 0 < float(row["ate_rmse_m"]) < 0.02
 
 
 def test_configs_first_orders_the_runs_configuration_by_configuration(tmp_path):

@@ -7,7 +7,8 @@
 
 A sweep file (YAML; ``tools/sweeps/bonn_ablation.yaml`` documents the keys) lists sequences (folders,
 or ``synthetic[:MOVERS][:seed=N][:path=P]`` generated with ground-truth boxes as the detector, or
-``hard:SCENE[:seed=N]``, a scripted hard scene with its detector's misses; tools/sweep_sequences.py),
+``hard:SCENE[:seed=N]``, a scripted hard scene with its detector's misses, or
+``composite:SCENE:path=FOLDER[:seed=N]``, its people composited into a real sequence; tools/sweep_sequences.py),
 presets for every run, labelled configurations, the baseline of the "vs." column, repeats (repeat k
 uses seed k) and max_frames; command-line options override it. Each run is this script with
 ``--run-one`` in its own process (a crash or a ``--timeout`` fails only that run) writing
@@ -289,7 +290,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sweep_file", nargs="?", type=Path, help="YAML sweep definition (see above)")
     parser.add_argument("--sequences", nargs="+",
-                        help="folders, synthetic[:MOVERS] or hard:SCENE (replace the file's)")
+                        help="folders, synthetic[:MOVERS], hard:SCENE or composite:SCENE:path=FOLDER (replace the file's)")
     parser.add_argument("--configs", nargs="+", help="preset names or YAML files, 'none' = off (replace the file's)")
     parser.add_argument("--preset", action="append", help="preset applied to every run first (replaces the file's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override for every run")

@@ -3,7 +3,10 @@
 A sequence is a TUM/Bonn folder, or a generated one: ``synthetic[:MOVERS][:seed=N][:path=P]`` (random
 walkers, ground-truth boxes as the detector) or ``hard:SCENE[:seed=N]`` (a scripted hard scene of
 ``slam/datasets/synthetic_scenes.py``, whose detector misses the person on the scene's
-``detector_misses`` frames, as ``tools/hard_scenes.py`` and ``dynslam demo`` run it).
+``detector_misses`` frames, as ``tools/hard_scenes.py`` and ``dynslam demo`` run it), or
+``composite:SCENE:path=FOLDER[:seed=N]`` (the people of a scene composited into a real sequence,
+``slam/datasets/composite.py``: its frames, its camera, its ground truth; all its frames unless
+``--max-frames``; a relative FOLDER is relative to the repository root).
 """
 from __future__ import annotations
 
@@ -13,6 +16,8 @@ from typing import Any, Optional
 
 SYNTHETIC_PREFIX = "synthetic"
 HARD_PREFIX = "hard:"
+COMPOSITE_PREFIX = "composite:"
+REPO = Path(__file__).resolve().parents[1]
 SYNTHETIC_FRAMES = 120          # frames of a random-walker sequence when --max-frames is not given
 HARD_FRAMES = 150               # frames of a hard scene when --max-frames is not given (tools/hard_scenes.py's)
 
@@ -23,7 +28,7 @@ class SequenceSpecError(ValueError):
 
 def is_generated(sequence: str) -> bool:
     """A generated sequence (no folder to check, no path to resolve)."""
-    return sequence.startswith((SYNTHETIC_PREFIX, HARD_PREFIX))
+    return sequence.startswith((SYNTHETIC_PREFIX, HARD_PREFIX, COMPOSITE_PREFIX))
 
 
 def sequence_label(sequence: str) -> str:
@@ -71,6 +76,22 @@ def open_hard(spec: str, n_frames: int):
     return HardScene(options["scene"], n_frames=n_frames, seed=options["seed"])
 
 
+def composite_options(spec: str) -> dict[str, Any]:
+    """``composite:SCENE:path=FOLDER[:seed=N]`` -> {"scene", "path" (absolute), "seed"}; refuses an unknown
+    scene, a missing path= and a folder without ground truth."""
+    from slam.datasets.composite import COMPOSITE_SCENES
+
+    options = {"seed": 0, **_options(spec, {"seed": int, "path": str}, "scene")}
+    if options.get("scene") not in COMPOSITE_SCENES or "path" not in options:
+        raise SequenceSpecError(f"{spec}: expected composite:SCENE:path=FOLDER[:seed=N] with SCENE one of "
+                                f"{', '.join(COMPOSITE_SCENES)}")
+    folder = Path(options["path"])
+    options["path"] = folder if folder.is_absolute() else (REPO / folder).resolve()
+    if not (options["path"] / "groundtruth.txt").is_file():
+        raise SequenceSpecError(f"{spec}: {options['path']} has no groundtruth.txt to composite from")
+    return options
+
+
 def build_pipeline(job: dict):
     """The Pipeline of one job, configured as ``dynslam run`` would be plus the job's seed."""
     from slam.run.run_config import resolve_run_config
@@ -79,7 +100,7 @@ def build_pipeline(job: dict):
     from slam.run.pipeline import Pipeline
 
     files, overrides, max_frames = list(job["presets"]), dict(job["overrides"]), job["max_frames"]
-    if is_generated(job["sequence"]):
+    if is_generated(job["sequence"]) and not job["sequence"].startswith(COMPOSITE_PREFIX):
         hard = job["sequence"].startswith(HARD_PREFIX)
         sequence = (open_hard(job["sequence"], max_frames or HARD_FRAMES) if hard
                     else open_synthetic(job["sequence"], max_frames or SYNTHETIC_FRAMES))
@@ -89,6 +110,15 @@ def build_pipeline(job: dict):
         config = seeded(resolve_run_config(None, files, {**camera, **overrides}), job["seed"])
         # YOLOX does not detect the generated people: their true boxes (8 px wider) stand in, without the
         # frames a hard scene's detector misses.
+        return Pipeline(sequence, config, job["run_dir"], max_frames, detector=demo_detector(sequence))
+    if job["sequence"].startswith(COMPOSITE_PREFIX):
+        from slam.datasets.composite import CompositeScene
+
+        options = composite_options(job["sequence"])
+        config = seeded(resolve_run_config(options["path"], files, overrides), job["seed"])
+        camera = config.camera
+        sequence = CompositeScene(options["scene"], options["path"], (camera.fx, camera.fy, camera.cx, camera.cy),
+                                  n_frames=max_frames, seed=options["seed"])
         return Pipeline(sequence, config, job["run_dir"], max_frames, detector=demo_detector(sequence))
     root = Path(job["sequence"])
     config = seeded(resolve_run_config(root, files, overrides), job["seed"])
@@ -112,6 +142,8 @@ def check_generated(sequence: str) -> Optional[str]:
     try:
         if sequence.startswith(HARD_PREFIX):
             hard_scene_options(sequence)
+        elif sequence.startswith(COMPOSITE_PREFIX):
+            composite_options(sequence)
         else:
             _options(sequence, {"seed": int, "path": str}, "movers")
     except (SequenceSpecError, ValueError) as exc:
