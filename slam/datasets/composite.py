@@ -138,7 +138,11 @@ class CompositeScene(HardScene):
         return out
 
     def render(self, pose: np.ndarray, time: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError("a composite has no room to render from an arbitrary pose; use frame()")
+        """The people alone seen from ``pose`` at ``time`` (black, depth 0 where no person is hit): a
+        composite has no model of the real room, only its frames (``frame``)."""
+        no_room = np.zeros((self.height, self.width), np.float32)
+        frames, depth, face = self._people(pose, time, no_room)
+        return self._over(np.zeros((self.height, self.width, 3), np.uint8), frames, depth, face), depth
 
     # -- the scripts ----------------------------------------------------------------------------------
 
