@@ -32,13 +32,12 @@ from .base import RGBDFrame
 from .synthetic import SyntheticSequence
 from .synthetic_bodies import mover_bodies
 from .synthetic_movers import Mover
-from .synthetic_scenes import BLUR_SAMPLES, EXPOSURE_S, HARD_SCENES, HardScene, _walker
+from .synthetic_scenes import BLUR_SAMPLES, EXPOSURE_S, HARD_SCENE_KINDS, HARD_SCENES, HardScene, _walker
 from .tum import DatasetError, TumDataset
 
 COMPOSITE_SCENES = ("none",) + HARD_SCENES + ("two_walk", "walk_stand")
 
-_KINDS = {"none": (), "close_pass": ("person",), "three_close": ("person",) * 3, "stand_walk": ("person",),
-          "border": ("person",), "two_walk": ("person",) * 2, "walk_stand": ("person",) * 2}
+_KINDS = {"none": (), **HARD_SCENE_KINDS, "two_walk": ("person",) * 2, "walk_stand": ("person",) * 2}
 
 
 class CompositeScene(HardScene):
@@ -51,6 +50,7 @@ class CompositeScene(HardScene):
         if scene not in COMPOSITE_SCENES:
             raise ValueError(f"unknown composite scene {scene!r}; expected one of {', '.join(COMPOSITE_SCENES)}")
         self.base = base if isinstance(base, TumDataset) else TumDataset(base)
+        self._last_real: Optional[RGBDFrame] = None
         gt = self.base.groundtruth()
         if gt is None:
             raise DatasetError(f"{self.base.root}: no groundtruth.txt; people are composited from the "
@@ -104,21 +104,20 @@ class CompositeScene(HardScene):
         front = (depth > 0) & ((real_depth <= 0) | (depth < real_depth))
         return frames, np.where(front, depth, real_depth).astype(np.float32), np.where(front, face, self._no_hit)
 
-    def _cast_frame(self, index: int, cache: bool = True, real_depth: Optional[np.ndarray] = None):
-        if index in self._casts:
-            return self._casts[index]
+    def _cast_at(self, index: int):
         time = float(self.timestamps[index])
-        out = self._people(self.pose(time), time, self.base[index].depth if real_depth is None else real_depth)
-        if cache:
-            self._casts[index] = out
-            while len(self._casts) > 3:
-                self._casts.popitem(last=False)
-        return out
+        return self._people(self.pose(time), time, self._real(index).depth)
+
+    def _real(self, index: int) -> RGBDFrame:
+        """The real frame ``index``, the last one kept: ``frame`` and the cast it triggers read it once."""
+        if self._last_real is None or self._last_real.index != index:
+            self._last_real = self.base[index]
+        return self._last_real
 
     def frame(self, index: int, cache: bool = True) -> RGBDFrame:
-        real = self.base[index]
+        real = self._real(index)
         time = float(self.timestamps[index])
-        frames, depth, face = self._cast_frame(index, cache, real.depth)
+        frames, depth, face = self._cast_frame(index, cache)
         rgb = self._over(real.rgb, frames, depth, face)
         if index in self.blurred:
             # The person blurs over the exposure; the real pixels carry the real camera's own blur already.

@@ -261,14 +261,18 @@ class SyntheticSequence:
         """(box frames, depth, face) of frame ``index``; the last few are kept for the mask/box queries."""
         if index in self._casts:
             return self._casts[index]
-        time = float(self.timestamps[index])
-        frames = self._box_frames(self.pose(time), time)
-        out = (frames, *self._cast(frames))
+        out = self._cast_at(index)
         if cache:
             self._casts[index] = out
             while len(self._casts) > 3:
                 self._casts.popitem(last=False)
         return out
+
+    def _cast_at(self, index: int):
+        """(box frames, depth, face) of frame ``index``, uncached."""
+        time = float(self.timestamps[index])
+        frames = self._box_frames(self.pose(time), time)
+        return (frames, *self._cast(frames))
 
     def render(self, pose: np.ndarray, time: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(BGR uint8 HxWx3, depth float32 HxW metres) seen from camera-to-world ``pose`` at ``time``."""

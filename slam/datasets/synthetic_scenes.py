@@ -44,7 +44,7 @@ MISS_VISIBLE = 0.5
 """border: a person cut by the left or right image border is missed while less than this share of their
 width is in view."""
 
-_KINDS = {"close_pass": ("person",), "three_close": ("person",) * 3, "stand_walk": ("person",),
+HARD_SCENE_KINDS = {"close_pass": ("person",), "three_close": ("person",) * 3, "stand_walk": ("person",),
           "border": ("person",)}
 
 
@@ -57,7 +57,7 @@ class HardScene(SyntheticSequence):
         if scene not in HARD_SCENES:
             raise ValueError(f"unknown hard scene {scene!r}; expected one of {', '.join(HARD_SCENES)}")
         self.scene = scene
-        super().__init__(n_frames=n_frames, seed=seed, movers=list(_KINDS[scene]), **kwargs)
+        super().__init__(n_frames=n_frames, seed=seed, movers=list(HARD_SCENE_KINDS[scene]), **kwargs)
         self.name = f"synthetic_orbit_seed{seed}_{scene}"
         self.coverage = self._coverage()
         """Per frame: share of the image covered by movers (moving or not)."""
