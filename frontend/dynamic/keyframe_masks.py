@@ -42,6 +42,8 @@ class MaskParts:
         self.shape = shape
         self.motion_region = motion_region        # HxW float, detector-free regions (region_motion)
         self.prior = prior                        # HxW float, the person-box prior
+        # (moving, known) HxW bool from free_space.FreeSpaceCheck once the frame's pose is tracked, or None
+        self.free_space: Optional[tuple[np.ndarray, np.ndarray]] = None
         self._fused: Optional[tuple[Optional[np.ndarray]]] = None
         self._motion: Optional[tuple[Optional[np.ndarray]]] = None
 
@@ -99,9 +101,10 @@ def still_region(shape: tuple[int, int], boxes: list[Box], still) -> Optional[np
 
 
 def compose_mask(parts: MaskParts, region: Optional[np.ndarray]) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
-    """(mask of moving surfaces, pixels of people standing still) for a frame whose standing people
-    cover ``region``: there only the motion-measuring methods count, and what the fusion would have
-    flagged of them goes to the second mask (never mapped). Either may be None."""
+    """(mask of moving surfaces, pixels never to be mapped though not moving) for a frame whose standing
+    people cover ``region``: there only the motion-measuring methods count, and what the fusion would have
+    flagged of them goes to the second mask. Flagged pixels that the free-space test (``parts.free_space``)
+    finds consistent with every earlier frame go there too. Either may be None."""
     mask = None if parts.fused is None else parts.fused.copy()
     still_people = None
     if mask is not None and region is not None:
@@ -109,6 +112,12 @@ def compose_mask(parts: MaskParts, region: Optional[np.ndarray]) -> tuple[Option
         mask[region] = 0.0 if parts.motion is None else parts.motion[region]
     if mask is not None and parts.motion_region is not None:
         mask = np.maximum(mask, parts.motion_region)
+    if mask is not None and parts.free_space is not None:
+        moving, known = parts.free_space
+        unmoved = (mask >= 0.5) & known & ~moving
+        if unmoved.any():
+            mask[unmoved] = 0.0
+            still_people = unmoved if still_people is None else still_people | unmoved
     if parts.prior is not None:
         mask = parts.prior if mask is None else np.maximum(mask, parts.prior)
     return mask, still_people

@@ -19,6 +19,7 @@ import numpy as np
 from frontend.dynamic import DynamicStats, RevisedMask
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.box_memory import BoxMemory
+from frontend.dynamic.free_space import FreeSpaceCheck
 from frontend.dynamic.fusion import fuse
 from frontend.dynamic.keyframe_masks import KeyframeMaskLedger, MaskParts, compose_mask, still_region
 from frontend.dynamic.region_motion import RegionCarry, RegionMotion, box_centre, confirmed_regions
@@ -82,6 +83,8 @@ class DynamicRejector:
         self._still_people_mask: Optional[np.ndarray] = None
         self._people: tuple[list, np.ndarray] = ([], np.zeros(0, bool))   # the frame's person boxes, who stands
         self._keyframe_masks = KeyframeMaskLedger(cfg.still_window_s)
+        self._free_space = FreeSpaceCheck(camera, tuple(cfg.mask_free_space_lags_s), cfg.mask_free_space_margin_m,
+                                          cfg.mask_free_space_window_px)
         self.people_still = 0       # people standing still in the last frame (region_motion)
         # Earlier keyframes' masks composed again after the last frame: a person in them was found
         # standing still (keyframe_masks); the run's outputs rewrite those keyframes' mask files.
@@ -270,6 +273,11 @@ class DynamicRejector:
             return
         ctx, outputs = self._last
         tracks = self._region_motion.commit(T_cw)
+        if T_cw is not None and self._free_space.enabled:
+            if is_keyframe and self._mask_parts is not None:
+                self._mask_parts.free_space = self._free_space.evidence(ctx.frame.timestamp, ctx.depth, T_cw)
+                self._fused_mask = None        # composed again, with the evidence, on the next read
+            self._free_space.remember(ctx.frame.timestamp, ctx.depth, T_cw)
         boxes, still = self._people
         keyframe = (ctx.frame.index, self._mask_parts, boxes) if is_keyframe and self._mask_parts is not None else None
         self.revised_masks = self._keyframe_masks.advance(ctx.frame.timestamp, tracks, still, keyframe,

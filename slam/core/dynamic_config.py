@@ -20,6 +20,7 @@ FUSION_MODES: tuple[str, ...] = get_args(FusionMode)
 DETECTOR_MODELS: tuple[str, ...] = get_args(DetectorModel)
 
 CocoClass = Annotated[int, Field(ge=0, le=79)]   # the detectors' 80 COCO classes, 0-based
+Lag = Annotated[float, Field(gt=0, le=10)]        # seconds back: 1.5x the longest is kept, ~150 kB a frame
 _UNIT = dict(ge=0, le=1)   # weights and probabilities
 
 
@@ -233,6 +234,14 @@ class DynamicConfig(ConfigSection):
     Tracking and the map keep them out either way. 0 = off: every person counts as moving."""
     still_max_move_m: float = Field(0.15, gt=0)
     """0.15 m in 0.5 s is 0.3 m/s: half the slowest walking pace, 5x a standing person's sway."""
+    mask_free_space_lags_s: list[Lag] = Field(default_factory=lambda: [0.5, 1.0])
+    """The keyframe masks keep as moving only pixels that stand where a frame this long before saw a surface
+    clearly behind them, where such a frame can tell (frontend/dynamic/free_space.py: 0.5 / 1.0 s, a slow
+    walker's 0.25 / 0.5 m). Empty = off. Tracking and the map are unaffected."""
+    mask_free_space_margin_m: float = Field(0.1, ge=0)
+    """A point counts as in front of the earlier surface by more than this plus 3 sigma of depth noise."""
+    mask_free_space_window_px: int = Field(20, ge=1)
+    """The earlier depth is the nearest within this window (px): 2 degrees of pose or edge error."""
     dump_masks_dir: str = ""
     """Optional folder for PNG mask overlays (empty = off)."""
 

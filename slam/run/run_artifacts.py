@@ -2,9 +2,12 @@
 
 - ``masks/<frame index:06d>.png``  per keyframe, the front end's dynamic probability (8-bit, 255 = 1.0),
                                    written only with dynamic handling on: moving surfaces (people
-                                   standing still are left out, frontend/dynamic/region_motion.py);
-- ``masks/<frame index:06d>_still.png``  per keyframe where someone stands still: their pixels (255), which
-                                   dense maps leave out like the moving ones;
+                                   standing still are left out, frontend/dynamic/region_motion.py, and
+                                   so are flagged pixels that earlier frames show did not move,
+                                   frontend/dynamic/free_space.py);
+- ``masks/<frame index:06d>_still.png``  per keyframe: the pixels flagged but not moving (people standing
+                                   still, surfaces the free-space test found unmoved; 255), which dense
+                                   maps leave out like the moving ones;
 - ``keyframes/``                   when the frames cannot be re-read later (generated sequences, bags,
                                    readers without random access): per keyframe ``color/<index>.png``
                                    (BGR), ``depth/<index>.png`` (16-bit, millimetres) and ``frames.txt``
@@ -29,7 +32,7 @@ from slam.run.sparse_map import write_sparse_ply
 log = logging.getLogger("dynslam")
 
 MASK_DIR = "masks"
-STILL_SUFFIX = "_still"      # masks/<index>_still.png: people standing still (255), never fused into maps
+STILL_SUFFIX = "_still"      # masks/<index>_still.png: flagged, not moving (255), never fused into maps
 KEYFRAME_DIR = "keyframes"
 KEYFRAME_LIST = "frames.txt"
 KEYFRAME_DEPTH_SCALE = 1000.0   # keyframes/depth PNGs hold millimetres

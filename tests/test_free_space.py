@@ -1,0 +1,98 @@
+"""The free-space test of the keyframe masks (frontend/dynamic/free_space.py): a surface standing where an
+earlier frame saw through to a farther one moved in; one consistent with the earlier frames did not; one
+the earlier frame could not see gives no evidence."""
+import numpy as np
+import pytest
+
+from frontend.dynamic.free_space import FreeSpaceCheck
+from frontend.dynamic.keyframe_masks import MaskParts, compose_mask
+from slam.core.camera import PinholeCamera
+
+CAMERA = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
+WALL_M = 3.0
+
+
+def pose_cw(x: float) -> np.ndarray:
+    """World-to-camera of a camera at (x, 0, 0) looking along +z."""
+    T = np.eye(4)
+    T[0, 3] = -x
+    return T
+
+
+def wall(box: tuple[int, int, int, int] = None, box_depth: float = 1.5) -> np.ndarray:
+    depth = np.full((480, 640), WALL_M, np.float32)
+    if box is not None:
+        x0, y0, x1, y1 = box
+        depth[y0:y1, x0:x1] = box_depth
+    return depth
+
+
+def check(lags=(0.5, 1.0)) -> FreeSpaceCheck:
+    return FreeSpaceCheck(CAMERA, lags, margin_m=0.1, window_px=20)
+
+
+def test_a_surface_that_moved_in_front_of_the_wall_is_moving_and_the_wall_is_not():
+    fs = check()
+    fs.remember(0.0, wall(), pose_cw(0.0))                      # the wall alone, 1 s before
+    fs.remember(0.5, wall(), pose_cw(0.05))
+    box = (200, 100, 360, 400)
+    moving, known = fs.evidence(1.0, wall(box), pose_cw(0.1))  # the camera moved 10 cm sideways too
+    inner = (slice(box[1] + 10, box[3] - 10), slice(box[0] + 10, box[2] - 10))
+    assert moving[inner].all() and known[inner].all()
+    far = (slice(0, 480), slice(420, 600))                       # wall, away from the box, in both views
+    assert known[far].all() and not moving.any(axis=0)[400:].any()
+
+
+def test_a_surface_that_was_there_before_is_consistent():
+    fs = check()
+    box = (200, 100, 360, 400)
+    fs.remember(0.0, wall(box), pose_cw(0.0))                    # the box stood there 1 s ago too
+    fs.remember(0.5, wall(box), pose_cw(0.0))
+    moving, known = fs.evidence(1.0, wall(box), pose_cw(0.0))
+    assert not moving[110:390, 210:350].any() and known[110:390, 210:350].all()
+
+
+def test_what_the_earlier_frames_could_not_see_gives_no_evidence():
+    fs = check()
+    near = (100, 100, 540, 380)                                  # a large near board hid the wall behind it
+    fs.remember(0.0, wall(near, 1.0), pose_cw(0.0))
+    fs.remember(0.5, wall(near, 1.0), pose_cw(0.0))
+    moving, known = fs.evidence(1.0, wall(), pose_cw(0.0))       # the board is gone: the wall is seen again
+    assert not known[150:330, 150:490].any() and not moving[150:330, 150:490].any()
+
+
+def test_no_earlier_frame_far_enough_back_no_evidence_and_the_memory_is_bounded():
+    fs = check()
+    assert fs.evidence(0.0, wall(), pose_cw(0.0)) is None
+    fs.remember(0.0, wall(), pose_cw(0.0))
+    assert fs.evidence(0.1, wall(), pose_cw(0.0)) is None       # 0.1 s is under half of either lag
+    for k in range(1, 200):
+        fs.remember(k / 30, wall(), pose_cw(0.0))
+    assert len(fs._frames) <= 1.5 * 30 + 2                       # 1.5 x the longest lag at 30 Hz
+    assert check(lags=()).enabled is False
+
+
+def test_the_masks_keep_as_moving_only_what_the_evidence_does_not_contradict():
+    shape = (480, 640)
+    flagged = np.zeros(shape, np.float32)
+    flagged[100:300, 100:300] = 0.9
+    parts = MaskParts({}, [], [], "noisy_or", shape, motion_region=flagged, prior=None)
+    parts._fused, parts._motion = (np.zeros(shape, np.float32),), (None,)
+    moving = np.zeros(shape, bool)
+    moving[100:200, 100:300] = True                              # the upper half moved in
+    known = np.ones(shape, bool)
+    known[250:300] = False                                       # the bottom rows: no evidence
+    parts.free_space = (moving, known)
+    mask, unmoved = compose_mask(parts, None)
+    assert (mask[100:200, 100:300] >= 0.5).all()
+    assert (mask[200:250, 100:300] < 0.5).all() and unmoved[200:250, 100:300].all()
+    assert (mask[250:300, 100:300] >= 0.5).all()
+    assert unmoved.sum() == 50 * 200
+
+
+@pytest.mark.parametrize("lags", [[-0.5], [0.0]])
+def test_config_rejects_lags_that_are_not_positive(lags):
+    from slam.core.config import SlamConfig, apply_overrides
+    from slam.core.config_base import ConfigError
+    with pytest.raises(ConfigError, match=r"dynamic\.mask_free_space_lags_s"):
+        apply_overrides(SlamConfig(), {"dynamic.mask_free_space_lags_s": lags})
