@@ -36,7 +36,7 @@ def test_a_surface_that_moved_in_front_of_the_wall_is_moving_and_the_wall_is_not
     fs.remember(0.0, wall(), pose_cw(0.0))                      # the wall alone, 1 s before
     fs.remember(0.5, wall(), pose_cw(0.05))
     box = (200, 100, 360, 400)
-    moving, known = fs.evidence(1.0, wall(box), pose_cw(0.1))  # the camera moved 10 cm sideways too
+    moving, known = fs.keyframe(None, 1.0, wall(box), pose_cw(0.1))  # the camera moved 10 cm sideways too
     inner = (slice(box[1] + 10, box[3] - 10), slice(box[0] + 10, box[2] - 10))
     assert moving[inner].all() and known[inner].all()
     far = (slice(0, 480), slice(420, 600))                       # wall, away from the box, in both views
@@ -48,7 +48,7 @@ def test_a_surface_that_was_there_before_is_consistent():
     box = (200, 100, 360, 400)
     fs.remember(0.0, wall(box), pose_cw(0.0))                    # the box stood there 1 s ago too
     fs.remember(0.5, wall(box), pose_cw(0.0))
-    moving, known = fs.evidence(1.0, wall(box), pose_cw(0.0))
+    moving, known = fs.keyframe(None, 1.0, wall(box), pose_cw(0.0))
     assert not moving[110:390, 210:350].any() and known[110:390, 210:350].all()
 
 
@@ -57,15 +57,15 @@ def test_what_the_earlier_frames_could_not_see_gives_no_evidence():
     near = (100, 100, 540, 380)                                  # a large near board hid the wall behind it
     fs.remember(0.0, wall(near, 1.0), pose_cw(0.0))
     fs.remember(0.5, wall(near, 1.0), pose_cw(0.0))
-    moving, known = fs.evidence(1.0, wall(), pose_cw(0.0))       # the board is gone: the wall is seen again
+    moving, known = fs.keyframe(None, 1.0, wall(), pose_cw(0.0))       # the board is gone: the wall is seen again
     assert not known[150:330, 150:490].any() and not moving[150:330, 150:490].any()
 
 
 def test_no_earlier_frame_far_enough_back_no_evidence_and_the_memory_is_bounded():
     fs = check()
-    assert fs.evidence(0.0, wall(), pose_cw(0.0)) is None
+    assert fs.keyframe(None, 0.0, wall(), pose_cw(0.0)) is None
     fs.remember(0.0, wall(), pose_cw(0.0))
-    assert fs.evidence(0.1, wall(), pose_cw(0.0)) is None       # 0.1 s is under half of either lag
+    assert fs.keyframe(None, 0.1, wall(), pose_cw(0.0)) is None       # 0.1 s is under half of either lag
     for k in range(1, 200):
         fs.remember(k / 30, wall(), pose_cw(0.0))
     assert len(fs._frames) <= 1.5 * 30 + 2                       # 1.5 x the longest lag at 30 Hz
@@ -96,3 +96,21 @@ def test_config_rejects_lags_that_are_not_positive(lags):
     from slam.core.config_base import ConfigError
     with pytest.raises(ConfigError, match=r"dynamic\.mask_free_space_lags_s"):
         apply_overrides(SlamConfig(), {"dynamic.mask_free_space_lags_s": lags})
+
+
+def test_later_frames_grow_a_keyframes_evidence_and_hand_it_back_once_per_lag():
+    """The masks can wait: a keyframe with no earlier frame (the run's start) is tested against the frames
+    0.5 and 1 s after it as they come; the box that stood in front of the wall is gone from them."""
+    fs = check()
+    box = (200, 100, 360, 400)
+    assert fs.keyframe("kf", 0.0, wall(box), pose_cw(0.0)) is None
+    fs.remember(0.0, wall(box), pose_cw(0.0))
+    handed = []
+    for k in range(1, 40):                                        # 30 Hz, 1.3 s; the box left at once
+        handed.append((k, fs.remember(k / 30, wall(), pose_cw(0.0))))
+    got = [(k, items) for k, items in handed if items]
+    assert [k for k, _ in got] == [15, 30]                        # the first frames 0.5 s and 1 s later
+    (key, (moving, known)), = got[0][1]
+    assert key == "kf" and moving[110:390, 210:350].all() and known.mean() > 0.95
+    assert not moving[:, 420:].any()
+    assert fs._pending == []                                      # done after its last lag

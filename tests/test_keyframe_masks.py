@@ -107,6 +107,11 @@ def test_a_revision_rewrites_the_keyframes_mask_files(tmp_path):
     assert not cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED).any()
     assert (cv2.imread(str(still_path), cv2.IMREAD_UNCHANGED) == 255 * full).all()
     assert sorted(p.name for p in (tmp_path / MASK_DIR).iterdir()) == [mask_path.name, still_path.name]
+    # A later frame shows the pixels moving after all (free_space): back in the mask, the _still file gone.
+    moved = RevisedMask(7, 0.2, full, None)
+    again = SimpleNamespace(revised_keyframe_masks=(moved,), last_dynamic_mask=None, last_still_people_mask=None)
+    artifacts.on_frame(SimpleNamespace(is_keyframe=False), SimpleNamespace(index=30), again)
+    assert (cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED) == 255 * full).all() and not still_path.exists()
 
 
 class _FalsePersonOnTheWall:

@@ -1,5 +1,5 @@
-"""Free-space evidence for the keyframe masks: a surface seen now where an earlier frame saw through to
-something farther away has moved into that space (issue 11, item 1: depth consistency against what the
+"""Free-space evidence for the keyframe masks: a surface seen now where another frame saw through to
+something farther away was not there then: it moves (issue 11, item 1: depth consistency against what the
 map's frames saw; in none of the four papers).
 
 The keyframe masks (``masks/``) are a mask of *moving* surfaces. The methods that segment people
@@ -7,21 +7,24 @@ The keyframe masks (``masks/``) are a mask of *moving* surfaces. The methods tha
 floor around them, a person standing still. On people composited into real fr1/rpy frames the masks'
 precision was 0.11-0.51 (generated rooms, where people stand in the open: 0.82-0.94). The test here is
 geometric and needs no detector: each pixel of the keyframe, placed in the world with the keyframe's
-tracked pose, is projected into earlier frames (``lags_s`` before, with their tracked poses); if an
-earlier frame saw a surface clearly *behind* that point, the space the point occupies was empty then, so
-the surface there now moved in. A static surface projects onto itself (consistent), one hidden in the
-earlier frame projects behind a nearer surface (no evidence either way), and so does any pixel outside the
-earlier frame's view or without depth (unknown).
+tracked pose, is projected into the frames ``lags_s`` before it and, as they arrive, ``lags_s`` after it
+(with their tracked poses); if such a frame saw a surface clearly *behind* that point, the space the point
+occupies was empty then: the surface there moves. A static surface projects onto itself (consistent), one
+hidden from the other frame projects behind a nearer surface (no evidence either way), and so does any
+pixel outside the other frame's view or without depth (unknown). The later frames matter on a turning
+camera: they see the parts of the view the earlier ones had not, and they give evidence at a run's start.
 
-Where a pixel is known and consistent with every earlier frame, the masks leave it out of the moving
+Where a pixel is known and consistent with every frame that knows it, the masks leave it out of the moving
 surfaces (``keyframe_masks.compose_mask``) and keep it among the pixels never to be mapped (``_still``),
-so a dense map leaves out what it left out before. Tracking and the sparse map are unchanged: this only
-sharpens the output masks, which can afford the tracked pose the features could not wait for.
+so a dense map leaves out what it left out before. A keyframe's mask is composed again as each later frame
+adds evidence (a ``RevisedMask``, as for a person found standing still; the run's outputs rewrite the
+files). Tracking and the sparse map are unchanged: this only sharpens the output masks, which can afford
+the tracked poses the features could not wait for.
 
 Why the numbers:
 
 - ``lags_s`` 0.5 and 1.0 s: a walker at the slowest deliberate pace (0.5 m/s) has moved 0.25 / 0.5 m, one
-  body width at 1 s, so most of their pixels in the keyframe land where an earlier frame saw past them; the
+  body width at 1 s, so most of their pixels in the keyframe land where the other frame saw past them; the
   second lag catches the parts where the body overlapped itself at the first.
 - ``margin`` ``0.1 m + 3 sigma_z`` (sigma_z = 0.004 z^2, the back end's fitted depth noise): a violation
   must exceed the sensor's noise at the earlier surface's depth (1 m: 0.11 m; 4 m: 0.29 m) plus the
@@ -30,12 +33,13 @@ Why the numbers:
   error, rolling shutter or lens distortion that shifts a depth edge by that much does not make the near
   side of an edge look as if it stood in front of the far side.
 - Evidence on every 4th pixel in each direction (a 160 x 120 grid at VGA), grown by ``_GROW_CELLS`` cells:
-  ~19 k points per earlier frame, well under a millisecond of numpy at a keyframe.
+  ~19 k points per comparison, four per keyframe: about a millisecond of numpy each.
 """
 from __future__ import annotations
 
 from collections import deque
-from typing import Optional
+from dataclasses import dataclass
+from typing import Any, Optional
 
 import cv2
 import numpy as np
@@ -48,18 +52,42 @@ _NOISE_COEFF = 0.004  # sigma_z = 0.004 z^2 (backend.depth_noise_coeff, fitted o
 _FAR = np.float32(1e6)  # invalid depth in the min filter
 
 
+@dataclass
+class _Reference:
+    """A tracked frame as the test reads it: its depth on the grid, the grid min-filtered, its pose."""
+    timestamp: float
+    depth: np.ndarray
+    nearest: np.ndarray
+    T_cw: np.ndarray
+
+
+@dataclass
+class _Keyframe:
+    """A keyframe whose evidence is still growing: its grid cells with depth, in the world, and what the
+    frames compared so far said about each."""
+    key: Any
+    timestamp: float
+    shape: tuple[int, int]                  # full-resolution image shape
+    valid: np.ndarray                       # grid cells with depth (bool, grid shape)
+    world: np.ndarray                       # (N, 3) world points of those cells
+    moving: np.ndarray                      # (N,) bool
+    known: np.ndarray                       # (N,) bool
+    due: list[float]                        # later lags not yet compared, ascending
+
+
 class FreeSpaceCheck:
-    """Remembers the last second of tracked frames (depth on the evidence grid and pose) and tests a
-    keyframe's pixels against them (see the module doc)."""
+    """Remembers the last frames (depth on the evidence grid and tracked pose) and tests a keyframe's
+    pixels against the frames ``lags_s`` before it at once and against the frames ``lags_s`` after it as
+    they arrive (see the module doc)."""
 
     def __init__(self, camera: PinholeCamera, lags_s: tuple[float, ...], margin_m: float, window_px: int):
         self.camera = camera
-        self.lags_s = tuple(float(v) for v in lags_s)
+        self.lags_s = tuple(sorted(float(v) for v in lags_s))
         self.margin_m = float(margin_m)
         radius = max(1, int(np.ceil(window_px / (2 * _STEP))))
         self._kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
-        # (t, depth on the grid, its min-filtered copy, T_cw)
-        self._frames: deque[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = deque()
+        self._frames: deque[_Reference] = deque()
+        self._pending: list[_Keyframe] = []
         self._rays: Optional[np.ndarray] = None
 
     @property
@@ -68,76 +96,92 @@ class FreeSpaceCheck:
 
     def reset(self) -> None:
         self._frames.clear()
+        self._pending = []
 
-    def remember(self, timestamp: float, depth: np.ndarray, T_cw: np.ndarray) -> None:
-        """A tracked frame, kept while it may serve as the earlier frame of a later keyframe."""
-        if not self.enabled:
-            return
-        grid = np.asarray(depth, np.float32)[::_STEP, ::_STEP]
-        grid = np.where(np.isfinite(grid) & (grid > 0), grid, _FAR)
-        self._frames.append((float(timestamp), grid, cv2.erode(grid, self._kernel), np.asarray(T_cw, float)))
-        horizon = timestamp - max(self.lags_s) * 1.5
-        while self._frames and self._frames[0][0] < horizon:
-            self._frames.popleft()
-
-    def evidence(self, timestamp: float, depth: np.ndarray, T_cw: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray]]:
-        """(moving, known), HxW bool, for a frame at ``timestamp`` with pose ``T_cw``: ``moving`` where a
-        pixel stands in space an earlier frame saw empty, ``known`` where some earlier frame could tell.
-        None when no earlier frame is far enough back (the run's first half second)."""
-        references = self._references(timestamp)
-        if not references:
-            return None
-        h, w = depth.shape
+    def keyframe(self, key: Any, timestamp: float, depth: np.ndarray, T_cw: np.ndarray
+                 ) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """Test a keyframe against the earlier frames now; ``remember`` compares it with the later ones as
+        they come and hands ``key`` back with the grown evidence. Returns (moving, known), HxW bool:
+        ``moving`` where a pixel stands in space another frame saw empty, ``known`` where some frame could
+        tell; None while no frame could (the run's first half second)."""
         z = np.asarray(depth, np.float32)[::_STEP, ::_STEP]
         valid = np.isfinite(z) & (z > 0)
-        rays = self._grid_rays(z.shape)
-        points = rays[valid] * z[valid, None].astype(float)          # camera frame, (N, 3)
+        points = self._grid_rays(z.shape)[valid] * z[valid, None].astype(float)      # camera frame
         T_wc = np.linalg.inv(T_cw)
-        world = points @ T_wc[:3, :3].T + T_wc[:3, 3]
-        moving_cells = np.zeros(len(points), bool)
-        known_cells = np.zeros(len(points), bool)
-        gh, gw = z.shape
-        cam = self.camera
-        for ref_depth, ref_nearest, ref_T_cw in references:
-            p = world @ ref_T_cw[:3, :3].T + ref_T_cw[:3, 3]
-            front = p[:, 2] > 1e-6
-            zr = np.where(front, p[:, 2], 1.0)
-            col = np.rint((cam.fx * p[:, 0] / zr + cam.cx) / _STEP).astype(np.int64)
-            row = np.rint((cam.fy * p[:, 1] / zr + cam.cy) / _STEP).astype(np.int64)
-            inside = front & (col >= 0) & (col < gw) & (row >= 0) & (row < gh)
-            seen = np.full(len(p), _FAR, np.float32)
-            nearest = np.full(len(p), _FAR, np.float32)
-            seen[inside] = ref_depth[row[inside], col[inside]]
-            nearest[inside] = ref_nearest[row[inside], col[inside]]
-            margin = self.margin_m + 3.0 * _NOISE_COEFF * seen.astype(float) ** 2
-            # Behind the earlier surface: hidden then, no evidence. In front of the nearest surface near
-            # where it lands: moving.
-            known = inside & (seen < _FAR) & (p[:, 2] <= seen + margin)
-            moving_cells |= known & (p[:, 2] < nearest - margin)
-            known_cells |= known
-        moving = np.zeros(z.shape, np.uint8)
-        known = np.zeros(z.shape, np.uint8)
-        moving[valid] = moving_cells
-        known[valid] = known_cells
-        grow = np.ones((2 * _GROW_CELLS + 1,) * 2, np.uint8)
-        moving = cv2.dilate(moving, grow)
-        full = (w, h)
-        moving_px = cv2.resize(moving, full, interpolation=cv2.INTER_NEAREST).astype(bool)
-        known_px = cv2.resize(known, full, interpolation=cv2.INTER_NEAREST).astype(bool)
-        return moving_px, known_px
+        n = len(points)
+        record = _Keyframe(key, float(timestamp), tuple(depth.shape), valid, points @ T_wc[:3, :3].T + T_wc[:3, 3],
+                           np.zeros(n, bool), np.zeros(n, bool), list(self.lags_s))
+        for reference in self._earlier(timestamp):
+            self._compare(record, reference)
+        self._pending.append(record)
+        return self._pixels(record) if record.known.any() else None
 
-    def _references(self, timestamp: float) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def remember(self, timestamp: float, depth: np.ndarray, T_cw: np.ndarray) -> list[tuple[Any, tuple[np.ndarray, np.ndarray]]]:
+        """A tracked frame: kept while it may serve as an earlier frame, and compared with the pending
+        keyframes it is the first frame ``lag`` after. Returns (key, (moving, known)) of the keyframes
+        whose evidence that changed."""
+        if not self.enabled:
+            return []
+        grid = np.asarray(depth, np.float32)[::_STEP, ::_STEP]
+        grid = np.where(np.isfinite(grid) & (grid > 0), grid, _FAR)
+        reference = _Reference(float(timestamp), grid, cv2.erode(grid, self._kernel), np.asarray(T_cw, float))
+        self._frames.append(reference)
+        horizon = timestamp - self.lags_s[-1] * 1.5
+        while self._frames and self._frames[0].timestamp < horizon:
+            self._frames.popleft()
+        changed = []
+        for record in self._pending:
+            due = [lag for lag in record.due if timestamp >= record.timestamp + lag]
+            if not due:
+                continue
+            record.due = [lag for lag in record.due if lag not in due]
+            if self._compare(record, reference):
+                changed.append((record.key, self._pixels(record)))
+        self._pending = [r for r in self._pending if r.due]
+        return changed
+
+    def _compare(self, record: _Keyframe, ref: _Reference) -> bool:
+        """Fold one frame's evidence into a keyframe's; True if it knew any cell."""
+        p = record.world @ ref.T_cw[:3, :3].T + ref.T_cw[:3, 3]
+        gh, gw = ref.depth.shape
+        cam = self.camera
+        front = p[:, 2] > 1e-6
+        zr = np.where(front, p[:, 2], 1.0)
+        col = np.rint((cam.fx * p[:, 0] / zr + cam.cx) / _STEP).astype(np.int64)
+        row = np.rint((cam.fy * p[:, 1] / zr + cam.cy) / _STEP).astype(np.int64)
+        inside = front & (col >= 0) & (col < gw) & (row >= 0) & (row < gh)
+        seen = np.full(len(p), _FAR, np.float32)
+        nearest = np.full(len(p), _FAR, np.float32)
+        seen[inside] = ref.depth[row[inside], col[inside]]
+        nearest[inside] = ref.nearest[row[inside], col[inside]]
+        margin = self.margin_m + 3.0 * _NOISE_COEFF * seen.astype(float) ** 2
+        # Behind the other frame's surface: hidden from it, no evidence. In front of the nearest surface
+        # near where it lands: that space was empty then.
+        known = inside & (seen < _FAR) & (p[:, 2] <= seen + margin)
+        record.moving |= known & (p[:, 2] < nearest - margin)
+        record.known |= known
+        return bool(known.any())
+
+    def _pixels(self, record: _Keyframe) -> tuple[np.ndarray, np.ndarray]:
+        moving = np.zeros(record.valid.shape, np.uint8)
+        known = np.zeros(record.valid.shape, np.uint8)
+        moving[record.valid] = record.moving
+        known[record.valid] = record.known
+        moving = cv2.dilate(moving, np.ones((2 * _GROW_CELLS + 1,) * 2, np.uint8))
+        full = (record.shape[1], record.shape[0])
+        return (cv2.resize(moving, full, interpolation=cv2.INTER_NEAREST).astype(bool),
+                cv2.resize(known, full, interpolation=cv2.INTER_NEAREST).astype(bool))
+
+    def _earlier(self, timestamp: float) -> list[_Reference]:
         """Per lag, the remembered frame nearest ``timestamp - lag``, at least half the lag back."""
-        chosen, seen_ids = [], set()
+        chosen: list[_Reference] = []
         for lag in self.lags_s:
-            candidates = [(abs(f[0] - (timestamp - lag)), k) for k, f in enumerate(self._frames)
-                          if f[0] <= timestamp - lag / 2]
+            candidates = [f for f in self._frames if f.timestamp <= timestamp - lag / 2]
             if not candidates:
                 continue
-            k = min(candidates)[1]
-            if k not in seen_ids:
-                seen_ids.add(k)
-                chosen.append(self._frames[k][1:])
+            best = min(candidates, key=lambda f: abs(f.timestamp - (timestamp - lag)))
+            if all(best is not c for c in chosen):
+                chosen.append(best)
         return chosen
 
     def _grid_rays(self, shape: tuple[int, int]) -> np.ndarray:

@@ -42,8 +42,11 @@ class MaskParts:
         self.shape = shape
         self.motion_region = motion_region        # HxW float, detector-free regions (region_motion)
         self.prior = prior                        # HxW float, the person-box prior
-        # (moving, known) HxW bool from free_space.FreeSpaceCheck once the frame's pose is tracked, or None
+        # (moving, known) HxW bool from free_space.FreeSpaceCheck once the frame's pose is tracked (and grown
+        # as later frames come), or None
         self.free_space: Optional[tuple[np.ndarray, np.ndarray]] = None
+        # HxW bool: the boxes of the people standing still, as last known (None: nobody)
+        self.still_region: Optional[np.ndarray] = None
         self._fused: Optional[tuple[Optional[np.ndarray]]] = None
         self._motion: Optional[tuple[Optional[np.ndarray]]] = None
 
@@ -160,8 +163,8 @@ class KeyframeMaskLedger:
             if not newly:
                 continue
             record.still[newly] = True
-            region = still_region(record.parts.shape, record.boxes, record.still)
-            mask, still_people = compose_mask(record.parts, region)
+            record.parts.still_region = still_region(record.parts.shape, record.boxes, record.still)
+            mask, still_people = compose_mask(record.parts, record.parts.still_region)
             if mask is not None:
                 revised.append(RevisedMask(record.frame_index, record.timestamp, mask, still_people))
         if keyframe is not None and self.window_s > 0:

@@ -191,6 +191,7 @@ class DynamicRejector:
         motion_region = None if self._motion_region is None else _MOTION_REGION_PROB * self._motion_region
         self._mask_parts = MaskParts(outputs, self._weights, self._motion_methods, self.cfg.fusion, ctx.gray.shape,
                                      motion_region, prior_mask)
+        self._mask_parts.still_region = self._still_region
         self._fused_mask = None
         if self._dump_dir is not None:
             self._dump(ctx, outputs, fused)
@@ -202,7 +203,7 @@ class DynamicRejector:
         full-resolution masks costs ~10 ms and is needed only when static features run short, for
         keyframes and for overlays."""
         if self._fused_mask is None and self._mask_parts is not None:
-            self._fused_mask, self._still_people_mask = compose_mask(self._mask_parts, self._still_region)
+            self._fused_mask, self._still_people_mask = compose_mask(self._mask_parts, self._mask_parts.still_region)
         return self._fused_mask
 
     def _confirmed_motion(self, outputs: dict[str, MethodOutput], frame: FeatureFrame,
@@ -273,15 +274,23 @@ class DynamicRejector:
             return
         ctx, outputs = self._last
         tracks = self._region_motion.commit(T_cw)
+        grown = []
         if T_cw is not None and self._free_space.enabled:
             if is_keyframe and self._mask_parts is not None:
-                self._mask_parts.free_space = self._free_space.evidence(ctx.frame.timestamp, ctx.depth, T_cw)
+                key = (ctx.frame.index, ctx.frame.timestamp, self._mask_parts.keep())
+                self._mask_parts.free_space = self._free_space.keyframe(key, ctx.frame.timestamp, ctx.depth, T_cw)
                 self._fused_mask = None        # composed again, with the evidence, on the next read
-            self._free_space.remember(ctx.frame.timestamp, ctx.depth, T_cw)
+            grown = self._free_space.remember(ctx.frame.timestamp, ctx.depth, T_cw)
         boxes, still = self._people
         keyframe = (ctx.frame.index, self._mask_parts, boxes) if is_keyframe and self._mask_parts is not None else None
         self.revised_masks = self._keyframe_masks.advance(ctx.frame.timestamp, tracks, still, keyframe,
                                                           self._region_motion.ended_still)
+        # Earlier keyframes that a later frame now shows (un)moved: composed again (keyframe_masks).
+        for (index, timestamp, parts), evidence in grown:
+            parts.free_space = evidence
+            mask, unmoved = compose_mask(parts, parts.still_region)
+            if mask is not None:
+                self.revised_masks.append(RevisedMask(index, timestamp, mask, unmoved))
         self._last_time = ctx.frame.timestamp
         for method in self.methods:
             with self.timer.measure(f"dynamic.{method.name}"):

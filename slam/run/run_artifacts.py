@@ -93,6 +93,8 @@ class RunArtifacts:
         still_path = self.output_dir / MASK_DIR / f"{index:06d}{STILL_SUFFIX}.png"
         if still is not None and still.any():
             write_png_atomic(still_path, still.astype(np.uint8) * 255)
+        elif still_path.exists():          # a revision found the pixels moving after all
+            still_path.unlink()
 
     def _write_keyframe_images(self, frame) -> None:
         folder = self.output_dir / KEYFRAME_DIR
