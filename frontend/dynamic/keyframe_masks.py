@@ -22,9 +22,11 @@ import numpy as np
 
 from frontend.dynamic import RevisedMask
 from frontend.dynamic.base import MethodOutput
+from frontend.dynamic.free_space import Evidence
 from frontend.dynamic.fusion import fuse
 
 Box = tuple[int, int, int, int]          # x0, y0, x1, y1 whole pixels
+_MOVED_REGION_PROB = 0.9                 # a region the free-space test saw move, as region_motion's regions
 
 
 class MaskParts:
@@ -42,9 +44,9 @@ class MaskParts:
         self.shape = shape
         self.motion_region = motion_region        # HxW float, detector-free regions (region_motion)
         self.prior = prior                        # HxW float, the person-box prior
-        # (moving, known) HxW bool from free_space.FreeSpaceCheck once the frame's pose is tracked (and grown
-        # as later frames come), or None
-        self.free_space: Optional[tuple[np.ndarray, np.ndarray]] = None
+        # free_space.FreeSpaceCheck's evidence once the frame's pose is tracked (grown as later frames
+        # come), or None
+        self.free_space: Optional[Evidence] = None
         # HxW bool: the boxes of the people standing still, as last known (None: nobody)
         self.still_region: Optional[np.ndarray] = None
         self._fused: Optional[tuple[Optional[np.ndarray]]] = None
@@ -106,8 +108,9 @@ def still_region(shape: tuple[int, int], boxes: list[Box], still) -> Optional[np
 def compose_mask(parts: MaskParts, region: Optional[np.ndarray]) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
     """(mask of moving surfaces, pixels never to be mapped though not moving) for a frame whose standing
     people cover ``region``: there only the motion-measuring methods count, and what the fusion would have
-    flagged of them goes to the second mask. Flagged pixels that the free-space test (``parts.free_space``)
-    finds consistent with every earlier frame go there too. Either may be None."""
+    flagged of them goes to the second mask. The free-space test (``parts.free_space``) adds the regions it
+    saw move, and flagged pixels it finds consistent with every frame that could tell go to the second
+    mask too. Either may be None."""
     mask = None if parts.fused is None else parts.fused.copy()
     still_people = None
     if mask is not None and region is not None:
@@ -116,7 +119,9 @@ def compose_mask(parts: MaskParts, region: Optional[np.ndarray]) -> tuple[Option
     if mask is not None and parts.motion_region is not None:
         mask = np.maximum(mask, parts.motion_region)
     if mask is not None and parts.free_space is not None:
-        moving, known = parts.free_space
+        moving, known, region = parts.free_space
+        if region.any():
+            mask[region] = np.maximum(mask[region], _MOVED_REGION_PROB)
         unmoved = (mask >= 0.5) & known & ~moving
         if unmoved.any():
             mask[unmoved] = 0.0
