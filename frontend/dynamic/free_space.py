@@ -117,9 +117,10 @@ class FreeSpaceCheck:
     def keyframe(self, key: Any, timestamp: float, depth: np.ndarray, T_cw: np.ndarray
                  ) -> Optional[Evidence]:
         """Test a keyframe against the earlier frames now; ``remember`` compares it with the later ones as
-        they come and hands ``key`` back with the grown evidence. Returns (moving, known), HxW bool:
+        they come and hands ``key`` back with the grown evidence. Returns the ``Evidence`` (HxW bool each:
         ``moving`` where a pixel stands in space another frame saw empty, ``known`` where some frame could
-        tell; None while no frame could (the run's first half second)."""
+        tell, ``region`` the whole regions the earlier frames saw move), or None while no earlier frame
+        could tell anything (the run's first half second)."""
         z = np.asarray(depth, np.float32)[::_STEP, ::_STEP]
         valid = np.isfinite(z) & (z > 0)
         points = self._grid_rays(z.shape)[valid] * z[valid, None].astype(float)      # camera frame
@@ -135,8 +136,8 @@ class FreeSpaceCheck:
 
     def remember(self, timestamp: float, depth: np.ndarray, T_cw: np.ndarray) -> list[tuple[Any, Evidence]]:
         """A tracked frame: kept while it may serve as an earlier frame, and compared with the pending
-        keyframes it is the first frame ``lag`` after. Returns (key, (moving, known)) of the keyframes
-        whose evidence that changed."""
+        keyframes it is the first frame ``lag`` after. Returns (key, ``Evidence``) of the keyframes whose
+        evidence it added to."""
         if not self.enabled:
             return []
         grid = np.asarray(depth, np.float32)[::_STEP, ::_STEP]
@@ -189,7 +190,7 @@ class FreeSpaceCheck:
         region = np.zeros(record.valid.shape, np.uint8)
         region[record.valid] = record.moved_before
         region = cv2.morphologyEx(region, cv2.MORPH_OPEN, np.ones((_OPEN_CELLS, _OPEN_CELLS), np.uint8))
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
         big = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= _MIN_REGION * region.size)
         region = np.isin(labels, big[big > 0]).astype(np.uint8)
         grow = np.ones((2 * _GROW_CELLS + 1,) * 2, np.uint8)
