@@ -82,16 +82,17 @@ class _DetectorThatSeesNobody:
 def test_without_any_detection_moving_people_are_still_found_by_motion_alone():
     """Issue 11, item 1: where the detector sees nobody (blur, a close torso, a person cut by the border)
     the regions cpr flags and flow_epipolar's epipolar test confirms are moving (region_motion.
-    confirmed_regions). Measured (60 frames of people walking, seed 0): keyframe masks 0.99 / 0.25
-    precision / recall (0.23 before regions were carried), nothing at all without the rule; the bars leave
-    room below that."""
+    confirmed_regions), and so are the regions the frames before a keyframe saw move (free_space).
+    Measured (60 frames of people walking, seed 0): keyframe masks 0.79 / 0.69 precision / recall; with
+    the epipolar regions alone 0.99 / 0.25, nothing at all without either. Bars: the issue's precision bar
+    for the masks (0.7), and more than half of the people's pixels found with no detection at all."""
     from slam.run.dynamic_eval import evaluate_synthetic
 
     sequence = SyntheticSequence(n_frames=60, movers="people", seed=0)
     result = evaluate_synthetic(sequence, synthetic_config(sequence, preset="dynamic_all"),
                                 detector=_DetectorThatSeesNobody())
     masks = result.keyframe_masks["fused"]
-    assert masks.recall >= 0.15 and masks.precision >= 0.8, (masks.precision, masks.recall)
+    assert masks.recall >= 0.5 and masks.precision >= 0.7, (masks.precision, masks.recall)
 
 
 @pytest.mark.slow
