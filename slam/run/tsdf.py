@@ -54,7 +54,8 @@ class KeyframeSet:
 
     def read_mask(self, k: int) -> Optional[np.ndarray]:
         """Keyframe k's dynamic probability (0..255), or None when the run recorded none; the people who
-        stood still in it (``<index>_still.png``, 255) count as dynamic too: they must never be mapped."""
+        stood still in it and the flagged pixels other frames showed unmoved (``<index>_still.png``, 255)
+        count as dynamic too: they must never be mapped."""
         if self.mask_dir is None:
             return None
         path = self.mask_dir / f"{int(self.frame_index[k]):06d}.png"
