@@ -87,7 +87,7 @@ def test_the_masks_keep_as_moving_only_what_the_evidence_does_not_contradict():
     region = np.zeros(shape, bool)
     region[400:450, 500:600] = True                              # moved as a whole, though nothing flagged it
     parts.free_space = Evidence(moving | region, known, region)
-    mask, unmoved = compose_mask(parts, None)
+    mask, unmoved = compose_mask(parts)
     assert (mask[400:450, 500:600] >= 0.5).all() and (mask >= 0.5).sum() == 100 * 200 + 50 * 200 + 50 * 100
     assert (mask[100:200, 100:300] >= 0.5).all()
     assert (mask[200:250, 100:300] < 0.5).all() and unmoved[200:250, 100:300].all()

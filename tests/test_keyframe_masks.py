@@ -35,8 +35,8 @@ def _parts(person_mask: np.ndarray, motion_mask: np.ndarray) -> MaskParts:
 
 def test_in_a_standing_persons_box_only_motion_evidence_counts_and_a_walker_keeps_everything():
     parts = _parts(_box_mask(PERSON, WALKER), np.zeros(SHAPE, np.float32))
-    region = still_region(SHAPE, [PERSON, WALKER], [True, False])
-    mask, still_people = compose_mask(parts, region)
+    parts.still_region = still_region(SHAPE, [PERSON, WALKER], [True, False])
+    mask, still_people = compose_mask(parts)
     assert not (mask[8:40, 10:30] >= 0.5).any()                    # the standing person left the mask
     assert (mask[8:40, 40:60] >= 0.5).all()                        # the walker did not
     assert still_people[8:40, 10:30].all() and still_people.sum() == 20 * 32   # ... and went to _still

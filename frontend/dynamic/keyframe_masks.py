@@ -105,23 +105,24 @@ def still_region(shape: tuple[int, int], boxes: list[Box], still) -> Optional[np
     return region
 
 
-def compose_mask(parts: MaskParts, region: Optional[np.ndarray]) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+def compose_mask(parts: MaskParts) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
     """(mask of moving surfaces, pixels never to be mapped though not moving) for a frame whose standing
-    people cover ``region``: there only the motion-measuring methods count, and what the fusion would have
+    people cover ``parts.still_region``: there only the motion-measuring methods count, and what the fusion would have
     flagged of them goes to the second mask. The free-space test (``parts.free_space``) adds the regions it
     saw move, and flagged pixels it finds consistent with every frame that could tell go to the second
     mask too. Either may be None."""
     mask = None if parts.fused is None else parts.fused.copy()
     still_people = None
+    region = parts.still_region
     if mask is not None and region is not None:
         still_people = (mask >= 0.5) & region
         mask[region] = 0.0 if parts.motion is None else parts.motion[region]
     if mask is not None and parts.motion_region is not None:
         mask = np.maximum(mask, parts.motion_region)
     if mask is not None and parts.free_space is not None:
-        moving, known, region = parts.free_space
-        if region.any():
-            mask[region] = np.maximum(mask[region], _MOVED_REGION_PROB)
+        moving, known, moved_region = parts.free_space
+        if moved_region.any():
+            mask[moved_region] = np.maximum(mask[moved_region], _MOVED_REGION_PROB)
         unmoved = (mask >= 0.5) & known & ~moving
         if unmoved.any():
             mask[unmoved] = 0.0
@@ -169,7 +170,7 @@ class KeyframeMaskLedger:
                 continue
             record.still[newly] = True
             record.parts.still_region = still_region(record.parts.shape, record.boxes, record.still)
-            mask, still_people = compose_mask(record.parts, record.parts.still_region)
+            mask, still_people = compose_mask(record.parts)
             if mask is not None:
                 revised.append(RevisedMask(record.frame_index, record.timestamp, mask, still_people))
         if keyframe is not None and self.window_s > 0:

@@ -203,7 +203,7 @@ class DynamicRejector:
         full-resolution masks costs ~10 ms and is needed only when static features run short, for
         keyframes and for overlays."""
         if self._fused_mask is None and self._mask_parts is not None:
-            self._fused_mask, self._still_people_mask = compose_mask(self._mask_parts, self._mask_parts.still_region)
+            self._fused_mask, self._still_people_mask = compose_mask(self._mask_parts)
         return self._fused_mask
 
     def _confirmed_motion(self, outputs: dict[str, MethodOutput], frame: FeatureFrame,
@@ -288,7 +288,7 @@ class DynamicRejector:
         # Earlier keyframes that a later frame now shows (un)moved: composed again (keyframe_masks).
         for (index, timestamp, parts), evidence in grown:
             parts.free_space = evidence
-            mask, unmoved = compose_mask(parts, parts.still_region)
+            mask, unmoved = compose_mask(parts)
             if mask is not None:
                 self.revised_masks.append(RevisedMask(index, timestamp, mask, unmoved))
         self._last_time = ctx.frame.timestamp
