@@ -140,8 +140,11 @@ def test_cell_coverage_and_cover_rule():
 
 # ---------------------------------------------------------------------------------- Algorithm 1
 
-def test_moving_patch_is_off_its_epipolar_lines_and_static_points_are_not():
-    m = new_method()
+@pytest.mark.parametrize("level, window", [(0, 21), (1, 11)])
+def test_moving_patch_is_off_its_epipolar_lines_and_static_points_are_not(level, window):
+    """At full resolution and on the half-resolution image (``lk_start_level`` 1: positions come back in
+    full-resolution pixels)."""
+    m = new_method(lk_start_level=level, lk_window=window)
     step(m, make_ctx(render(0.0), 0, []))
     gray1 = render(CAMERA_STEP, patch_dy=6.0, patch_dx=1.0)
     box = patch_box(dy=6.0)
@@ -157,6 +160,13 @@ def test_moving_patch_is_off_its_epipolar_lines_and_static_points_are_not():
     assert on_patch.sum() > 20 and static.sum() > 100
     assert np.mean(d[on_patch] > 2.0) > 0.9
     assert np.mean(d[static] <= 2.0) > 0.97
+    # the static points' flow is the band's true shift fx * t / Z (px), to a fraction of the 2 px test
+    band = np.minimum((cur_ok[:, 1] // (H / len(BAND_DEPTHS))).astype(int), len(BAND_DEPTHS) - 1)
+    true_dx = -FX * CAMERA_STEP / np.asarray(BAND_DEPTHS)[band]
+    flow = x1[ok] - x0[ok]
+    interior = static & (np.abs(cur_ok[:, 1] - (band + 0.5) * H / len(BAND_DEPTHS)) < H / 6 - 12)
+    assert np.median(np.abs(flow[interior, 0] - true_dx[interior])) < 0.1
+    assert np.median(np.abs(flow[interior, 1])) < 0.1
 
 
 def test_dynamic_sub_boxes_are_removed_and_static_part_of_box_is_kept():

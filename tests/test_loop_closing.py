@@ -36,25 +36,27 @@ def _walk(loop: bool, revisit_ratio: float = 0.0) -> tuple[System, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def walks():
+    """The walk with loop closing on, left open for the tests that read and edit its graph."""
     with pytest.MonkeyPatch.context() as mp:
         _inject_drift(mp)
         on, gt = _walk(True)
-        off, _ = _walk(False)
-    return on, off, gt
+    return on, gt
 
 
 @pytest.fixture(scope="module")
 def written_ates():
-    """ATE of the trajectories the two runs write: after ``close()`` (every update applied, the final
-    adjustment done), which is what a user gets; ``walks`` stays open for the tests that edit its graph."""
-    ates = []
+    """ATE of the trajectories the runs with loop closing on and off write: after ``close()`` (every
+    update applied, the final adjustment done), which is what a user gets; and the closed run with loop
+    closing off (``walks`` stays open for the tests that edit its graph)."""
+    ates, systems = [], []
     with pytest.MonkeyPatch.context() as mp:
         _inject_drift(mp)
         for loop in (True, False):
             system, gt = _walk(loop)
             system.close()
             ates.append(_ate(system, gt))
-    return tuple(ates)
+            systems.append(system)
+    return ates[0], ates[1], systems[1]
 
 
 def _ate(system: System, gt: np.ndarray) -> float:
@@ -65,7 +67,8 @@ def _ate(system: System, gt: np.ndarray) -> float:
 
 @pytest.mark.slow
 def test_loop_found_and_ate_at_least_halved(walks, written_ates):
-    on, off, gt = walks
+    on, gt = walks
+    ate_on, ate_off, off = written_ates
     detected = [e for e in on.loop_closer.loops if e.source == "detected"]
     assert detected and any(e.active for e in detected)
     assert not off.loop_closer.loops
@@ -76,7 +79,6 @@ def test_loop_found_and_ate_at_least_halved(walks, written_ates):
         T_true = np.linalg.solve(gt[frame_of[e.match_kf]], gt[frame_of[e.query_kf]])
         E = np.linalg.solve(T_true, e.T_match_query)
         assert np.linalg.norm(E[:3, 3]) < 0.1
-    ate_on, ate_off = written_ates
     report_figures("room walked twice with drift injected (test_loop_closing.py)",
                    f"ATE {ate_off:.4f} m with loop closing off, {ate_on:.4f} m on ({len(detected)} loops)")
     assert ate_off > 0.025, "the injected drift should be visible with loop closing off"
@@ -99,7 +101,7 @@ def test_second_lap_after_the_loop_adds_few_keyframes():
 
 @pytest.mark.slow
 def test_fused_landmarks_link_both_sides_of_the_loop(walks):
-    on, _, _ = walks
+    on, _ = walks
     edge = next(e for e in on.loop_closer.loops if e.source == "detected")
     slam_map = on.mapper.map
     assert edge.fused_landmarks >= 30
@@ -120,7 +122,7 @@ def test_fused_landmarks_link_both_sides_of_the_loop(walks):
 
 @pytest.mark.slow
 def test_wrong_loop_is_removed_and_moves_nothing(walks):
-    on, _, gt = walks
+    on, gt = walks
     before = on.trajectory()[1].copy()
     n_kf = on.mapper.map.num_keyframes
     # A loop between a keyframe of lap 1 and the last one, 0.5 m and 20 degrees off the truth.
@@ -143,7 +145,7 @@ def test_loop_edges_are_exported_with_the_graph(walks, tmp_path):
     from backend.graph_export import export_g2o, graph_edges_from_mapper, loop_edges, mapper_keyframes
     import gtsam
 
-    on, _, _ = walks
+    on, _ = walks
     edges = graph_edges_from_mapper(on.mapper) + loop_edges(on.loop_closer.loops, 0.02, 1.0)
     ids, _, poses = mapper_keyframes(on.mapper)
     export_g2o(tmp_path / "g.g2o", ids, poses, edges)

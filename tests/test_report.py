@@ -216,3 +216,22 @@ def test_strip_recorder_only_for_dynamic_runs_with_reports():
     assert isinstance(make_strip_recorder(config, 10), DynamicStripRecorder)
     config.output.report = False
     assert isinstance(make_strip_recorder(config, 10), NullStripRecorder)
+
+
+def test_the_strip_thumbnails_leave_matplotlib_unimported():
+    """matplotlib takes 1-2 s to import: the thumbnails are made inside the tracking loop, with OpenCV
+    alone, and the import waits for the figures at the end of the run (started on a thread while the
+    final adjustment runs: Pipeline._preload_report_imports)."""
+    import subprocess
+    import sys
+
+    script = ("import sys, numpy as np\n"
+              "from types import SimpleNamespace\n"
+              "from slam.run.report import DynamicStripRecorder\n"
+              "recorder = DynamicStripRecorder(0.5, expected_frames=2, width=40)\n"
+              "frame = SimpleNamespace(uv_raw=np.array([[10.0, 10.0]]), dynamic_prob=np.array([0.9]))\n"
+              "recorder.observe(0, np.zeros((60, 80, 3), np.uint8), frame, lambda: np.zeros((60, 80)))\n"
+              "assert len(recorder.thumbnails) == 1\n"
+              "print('matplotlib' in sys.modules)\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "False", result.stderr

@@ -169,6 +169,10 @@ class FlowEpipolarConfig(ConfigSection):
     # grid prior without history, posterior clamp [c, 1 - c] so that cells never freeze at 0 or 1.
     lk_window: int = Field(21, ge=3)   # OpenCV's LK needs a window of a few pixels
     lk_levels: int = Field(3, ge=0)   # 0 = no pyramid
+    lk_start_level: int = Field(0, ge=0, le=2)
+    """Pyramid level the flow is measured on: 0 = full resolution, 1 = half (with ``lk_window`` 11 the
+    window spans 22 full-resolution pixels, like 21 at full size, at about a quarter of the CPU; see
+    frontend/dynamic/flow_epipolar.py); above 2 a 640 px image is 80 px wide, too coarse to track corners."""
     fb_max_px: float = Field(0.0, ge=0)
     ransac_px: float = Field(1.0, gt=0)
     min_tracks: int = Field(15, ge=8)   # the eight-point algorithm needs 8 correspondences for F

@@ -41,6 +41,7 @@ end of the run; without any the pipeline does no extra work.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Optional, Protocol, Sequence
@@ -145,6 +146,7 @@ class Pipeline:
                     if self.summary.interrupted:
                         log.warning("interrupted: writing the results of the %d frames processed", self.summary.frames)
                     self.summary.wall_time_s = time.perf_counter() - start
+                    self._preload_report_imports()
                     self.system.close()
                     self._write_result_poses()
                 self._save_map()
@@ -287,6 +289,21 @@ class Pipeline:
         except TypeError:
             return self.max_frames
         return total if self.max_frames is None else min(total, self.max_frames)
+
+    def _preload_report_imports(self) -> None:
+        """Start importing matplotlib (1-2 s) on a thread while ``System.close`` waits for the final
+        adjustment in the mapping worker: the report needs it last, and the main thread is idle here."""
+        if not self.config.output.report:
+            return
+        from slam.run.report_plots import preload_matplotlib
+
+        def preload() -> None:
+            try:
+                preload_matplotlib()
+            except Exception:   # the report says what is missing when it is written (_write_report)
+                pass
+
+        threading.Thread(target=preload, name="dynslam-report-import", daemon=True).start()
 
     def _write_report(self) -> None:
         """report/: plots and index.html (slam.run.report). Never fails the run: the results are written."""

@@ -9,14 +9,15 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import cv2
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from slam.core.atomic_io import write_atomic
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 FIGURE_SIZE_PX = (960, 720)     # width, height of every matplotlib image
 _DPI = 120
@@ -26,7 +27,18 @@ DYNAMIC_BGR = (40, 40, 230)     # features at or above it, and the mask tint
 _MASK_ALPHA = 0.55
 
 
+def preload_matplotlib() -> None:
+    """Import what the figures need. matplotlib takes 1-2 s to import: imported here only when a figure
+    is made, so the dynamic strip's thumbnails (OpenCV alone) do not pay for it inside the tracking loop,
+    and a run imports it on a thread while its final adjustment runs (``Pipeline.run``)."""
+    import matplotlib.backends.backend_agg  # noqa: F401
+    import matplotlib.figure  # noqa: F401
+
+
 def _new_figure(rows: int = 1) -> tuple[Figure, list]:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(FIGURE_SIZE_PX[0] / _DPI, FIGURE_SIZE_PX[1] / _DPI), dpi=_DPI)
     FigureCanvasAgg(fig)
     axes = [fig.add_subplot(rows, 1, i + 1) for i in range(rows)]
