@@ -26,7 +26,7 @@ import html
 import logging
 import math
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Protocol
 
 import numpy as np
 
@@ -40,6 +40,16 @@ THUMBNAIL_WIDTH = 320
 
 
 # ------------------------------------------------------------------ thumbnails
+class StripRecorder(Protocol):
+    """What a run asks of its dynamic-strip recorder (``DynamicStripRecorder`` or ``NullStripRecorder``)."""
+
+    @property
+    def thumbnails(self) -> list[np.ndarray]: ...
+
+    def observe(self, position: int, bgr: np.ndarray, frame: Any,
+                mask: Callable[[], Optional[np.ndarray]]) -> None: ...
+
+
 class DynamicStripRecorder:
     """Keeps at most ``capacity`` small annotated frames, evenly spaced over the run.
 
