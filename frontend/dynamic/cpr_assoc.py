@@ -101,8 +101,18 @@ class ProjectiveTarget:
         centre = np.where(ok, g.cell[lin], g.size)
         idx = centre[:, None] + g.offsets[None, :]
         idx[~ok] = g.size                                     # the sentinel cell: never valid
-        dx, dy, dz = (np.take(c, idx) - p[:, a, None] for a, c in enumerate(self._cols))
-        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        # (dx*dx + dy*dy) + dz*dz in place: the same operations in the same order as the plain
+        # expression (the same bits), without its eight temporary (N, window) arrays.
+        dist = np.take(self._cols[0], idx)
+        dist -= p[:, 0, None]
+        dist *= dist
+        part = np.empty_like(dist)
+        for a in (1, 2):
+            np.take(self._cols[a], idx, out=part)
+            part -= p[:, a, None]
+            part *= part
+            dist += part
+        np.sqrt(dist, out=dist)
         if k == 1:
             best = np.argmin(dist, axis=1)[:, None]
             return np.take_along_axis(dist, best, 1), np.take_along_axis(idx, best, 1)
