@@ -2,7 +2,7 @@
 
 Tiers (markers registered in pyproject.toml):
 - ``real``: needs ``../shared`` (real sequences or the ONNX detectors) beside the checkout;
-- ``slow``: takes more than a few seconds; ``pytest -m "not slow"`` is the everyday tier (< 2 min).
+- ``slow``: takes more than a few seconds; ``pytest -m "not slow" -n 2`` is the everyday tier (< 2 min).
 
 Missing real data: a user's clone without ``../shared`` skips those tests with a reason. In CI (the
 environment variable ``CI`` is set, as ``.ci/run`` runs) a missing data set or model is a *failure*
