@@ -180,6 +180,7 @@ class FlowEpipolarMethod:
         self._dynamic_ids = set(int(c) for c in classes.dynamic)
         self._prev_gray: Optional[np.ndarray] = None     # at lk_start_level
         self._prev_shape: Optional[tuple[int, ...]] = None   # the full image's
+        self._last_level: Optional[tuple[np.ndarray, np.ndarray]] = None   # (image, at lk_start_level) of track
         self._prev_raw: Optional[np.ndarray] = None       # (M,2) float32 raw pixel coordinates
         self._prev_und: Optional[np.ndarray] = None       # (M,2) undistorted
         self._history: deque[np.ndarray] = deque(maxlen=max(int(cfg.history), 1))
@@ -187,7 +188,7 @@ class FlowEpipolarMethod:
 
     # ----------------------------------------------------------------------------------------------
     def reset(self) -> None:
-        self._prev_gray = self._prev_raw = self._prev_und = self._prev_shape = None
+        self._prev_gray = self._prev_raw = self._prev_und = self._prev_shape = self._last_level = None
         self._history.clear()
         self._pending_posterior = None
 
@@ -220,6 +221,7 @@ class FlowEpipolarMethod:
         win = (int(cfg.lk_window), int(cfg.lk_window))
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
         level_gray = self._flow_image(gray)
+        self._last_level = (gray, level_gray)   # end_frame keeps it as the next frame's previous image
         # pyrDown's pixel j sits on the full image's pixel 2j: coordinates scale without an offset
         scale = np.float32(2 ** int(cfg.lk_start_level))
         p0c = (p0 / scale).reshape(-1, 1, 2)
@@ -377,7 +379,9 @@ class FlowEpipolarMethod:
     def end_frame(self, ctx: DynamicContext, output: MethodOutput, T_cw: Optional[np.ndarray],
                   is_keyframe: bool) -> None:
         """Keep this frame's grey image and keypoints for the flow, and its grid posterior."""
-        self._prev_gray = self._flow_image(ctx.gray)
+        last = self._last_level
+        self._prev_gray = last[1] if last is not None and last[0] is ctx.gray else self._flow_image(ctx.gray)
+        self._last_level = None
         self._prev_shape = ctx.gray.shape
         self._prev_raw = np.asarray(ctx.frame.uv_raw, np.float32).reshape(-1, 2)
         self._prev_und = np.asarray(ctx.frame.uv, float).reshape(-1, 2)

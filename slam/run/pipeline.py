@@ -54,6 +54,7 @@ from slam.datasets.replay import RealtimeReplay
 from slam.run.evaluation import EvaluationReport, format_report
 from slam.run.input_checks import InputChecks
 from slam.run.interrupts import DeferredInterrupt
+from slam.run import report as run_report   # write_report looked up at the call: tests replace it
 from slam.run.report import NullStripRecorder, StripRecorder, make_strip_recorder
 from slam.runtime.system import FrameOutput, System, UpcomingFrame
 from slam.core.atomic_io import ensure_output_dir, write_text_atomic
@@ -309,10 +310,8 @@ class Pipeline:
         """report/: plots and index.html (slam.run.report). Never fails the run: the results are written."""
         if not self.config.output.report:
             return
-        from slam.run import report   # looked up at the call: tests replace report.write_report
-
         try:
-            report.write_report(self.output_dir, self.summary.to_dict(), self.report, self.dynamic_strip.thumbnails)
+            run_report.write_report(self.output_dir, self.summary.to_dict(), self.report, self.dynamic_strip.thumbnails)
         except Exception as exc:
             log.warning("report not written to %s (%s: %s)", self.output_dir / "report", type(exc).__name__, exc)
 
