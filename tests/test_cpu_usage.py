@@ -49,3 +49,24 @@ def test_only_the_cpu_used_inside_the_block_counts():
     with cpu_usage.CpuSampler() as cpu:
         _burn(0.1)
     assert 0.05 <= cpu.seconds["tracking"] <= 0.25
+
+
+def test_the_mapping_worker_is_counted_by_its_own_name_not_the_fork_servers():
+    """Every worker is forked from the fork server and shares its command line; the worker names itself
+    (slam/core/worker_process.py), so the benchmark's CPU line tells the back end from the server."""
+    from slam.core.config import BackendConfig
+    from slam.runtime.graph_process import GraphProcess, GraphSpec
+    from conftest import RING_CALIBRATION
+
+    graph = GraphProcess(GraphSpec(BackendConfig(), RING_CALIBRATION))
+    try:
+        pid = graph._process.pid
+        deadline = time.monotonic() + 30       # the worker names itself first thing; the server may be starting
+        while Path(f"/proc/{pid}/comm").read_text().strip() != "dynslam-mapping" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert Path(f"/proc/{pid}/comm").read_text().strip() == "dynslam-mapping"
+        assert cpu_usage._process_name(pid) == "mapping worker"
+        server = Path(f"/proc/{pid}/stat").read_text().split(") ")[1].split()[1]   # its parent: the server
+        assert cpu_usage._process_name(int(server)) == "fork server"
+    finally:
+        graph.close()

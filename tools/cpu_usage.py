@@ -6,8 +6,8 @@ where that bound is close to the wall time, the run is CPU-bound and only less w
 multiprocessing's fork server) and keeps each one's last ``utime + stime``; threads end with the run
 (the pools shut down in ``System.close``), so they are sampled while it goes. Names come from Python's
 threads (``dynslam-detector_0`` ...), the main thread is ``tracking``, threads Python did not start
-(OpenCV's and ONNX Runtime's own workers) are ``other threads``, other processes are named by their command
-line (``mapping worker`` for ``slam.runtime.graph_process`` and its fork server). Only the CPU used inside
+(OpenCV's and ONNX Runtime's own workers) are ``other threads``, the workers by the names they give themselves
+(``mapping worker``: slam/core/worker_process.py), other processes by their command line. Only the CPU used inside
 the ``with`` block counts (a thread's reading at the start is subtracted). Up to one poll interval (0.2 s) of
 the CPU of a thread that ends inside the block may be missed.
 """
@@ -43,13 +43,22 @@ def _children(pid: int) -> list[int]:
     return kids
 
 
+_WORKERS = {"dynslam-mapping": "mapping worker"}   # slam/core/worker_process.py
+
+
 def _process_name(pid: int) -> str:
+    try:
+        comm = Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        comm = ""
+    if comm in _WORKERS:
+        return _WORKERS[comm]
     try:
         cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
     except OSError:
         return f"process {pid}"
-    if "graph_process" in cmd or "forkserver" in cmd:
-        return "mapping worker"
+    if "forkserver" in cmd:
+        return "fork server"
     return re.sub(r"\s+", " ", cmd)[:40] or f"process {pid}"
 
 

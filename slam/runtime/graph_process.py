@@ -27,17 +27,12 @@ worker checks that they agree, so removal by handle needs no round trip. A loop 
 solved yet has no residual to report: ``relative_pose_error`` says (0, 0) until its first result comes back.
 
 Failures: an exception in the worker comes back as a ``BackendError`` naming the command that failed; a
-worker that dies is reported with its exit code. The worker ignores SIGINT (Ctrl-C is the main
-process's to handle: it still syncs and writes complete files), stops when its pipe closes, and is a
-daemon, so no process outlives the run.
+worker that dies is reported with its exit code. Starting and stopping (forkserver, Ctrl-C, no orphans):
+slam/core/worker_process.py.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
-import signal
-import sys
 import traceback
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Iterable, Optional
 
@@ -49,6 +44,10 @@ from backend.local_mapping import build_graph
 from slam.core.config import BackendConfig
 from slam.core.geometry import relative_pose_residual
 from slam.core.timing import thread_cpu_ms
+from slam.core.worker_process import preload, start_worker, stop_worker, worker_started
+
+preload(__name__)
+_WORKER_NAME = "dynslam-mapping"
 
 
 @dataclass(frozen=True)
@@ -62,29 +61,9 @@ class GraphSpec:
         return build_graph(self.config, self.calibration)
 
 
-@contextmanager
-def _main_module_hidden():
-    """multiprocessing re-imports the caller's main script in a forkserver/spawn child so the target can
-    come from it; ours comes from this module, and a user's script without an ``if __name__ ==
-    "__main__"`` guard would run again in the worker (and start a worker of its own). While the worker
-    is started, the main module shows no file or spec, so nothing of it is imported there."""
-    main = sys.modules.get("__main__")
-    saved = {key: main.__dict__[key] for key in ("__file__", "__spec__") if main is not None and key in main.__dict__}
-    try:
-        for key in saved:
-            if key == "__spec__":
-                main.__spec__ = None
-            else:
-                del main.__dict__[key]
-        yield
-    finally:
-        main.__dict__.update(saved)
-
-
 def _serve(spec: GraphSpec, conn) -> None:
     """The worker: apply command batches in order, answer each with the estimates it produced."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})   # blocked since before it started
+    worker_started(_WORKER_NAME)
     graph = spec.build()
     while True:
         try:
@@ -136,24 +115,7 @@ class GraphProcess:
         self.spec = spec
         self.realtime = realtime
         self._landmark_prior = BackendParams.from_config(spec.config).landmark_prior_sigma > 0
-        # forkserver: the worker is forked from a clean server process (not from this one, whose
-        # detector and OpenCV threads a fork would copy mid-state), and the server has the back end's
-        # modules loaded once, so a worker starts in milliseconds.
-        ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(["slam.runtime.graph_process"])
-        self._conn, child = ctx.Pipe()
-        self._process = ctx.Process(target=_serve, args=(spec, child), name="dynslam-mapping", daemon=True)
-        # SIGINT stays blocked from before the (first) server starts until the worker ignores it: a Ctrl-C
-        # during start-up must not kill the worker that the main process needs to finish the run. The
-        # mask passes to the server (fork + exec) and from it to each worker; here it is restored at once
-        # (a Ctrl-C in between is delivered then, not lost).
-        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        try:
-            with _main_module_hidden():
-                self._process.start()
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
-        child.close()
+        self._process, self._conn = start_worker(_serve, (spec,), _WORKER_NAME)
         self._batch: list[tuple] = []
         self._in_flight = False
         self._update_in_flight = False            # the batch in flight holds an update (not only optimize_all)
@@ -286,15 +248,7 @@ class GraphProcess:
         """Stop the worker (after ``sync()`` if its last result is wanted); safe to call twice."""
         if self._process is None:
             return
-        try:
-            self._conn.send(None)
-        except (BrokenPipeError, OSError):
-            pass
-        self._conn.close()
-        self._process.join(timeout=10)
-        if self._process.is_alive():
-            self._process.kill()
-            self._process.join()
+        stop_worker(self._process, self._conn)
         self._process = None
 
     def __del__(self):
