@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import pytest
 
-from conftest import load_tool, report_figures
+from conftest import ACCURACY_GROUP, load_tool, report_figures
 
-pytestmark = [pytest.mark.real, pytest.mark.slow]
+pytestmark = [pytest.mark.real, pytest.mark.slow, pytest.mark.xdist_group(ACCURACY_GROUP)]
 accuracy = load_tool("accuracy")
 GATED = [name for name, case in accuracy.CASES.items() if case.baseline_ate is not None]
 WITH_LOOPS = [name for name, case in accuracy.CASES.items() if case.min_loops]

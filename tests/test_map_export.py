@@ -28,7 +28,7 @@ from slam.run.map_export import (ExportRequest, dynamic_colors, dynamic_evidence
 from slam.run.trajectory import read_tum  # noqa: E402
 from slam.run.tsdf import BYTES_PER_VOXEL, VolumeSizeWarning, fuse_keyframes, plan_grid  # noqa: E402
 
-from conftest import report_figures  # noqa: E402
+from conftest import ACCURACY_GROUP, report_figures  # noqa: E402
 
 PEOPLE_FROM_FRAME = 230          # Bonn crowd: people walk into view from about here
 MESH, CLOUD, SPARSE = "map_dense_mesh.ply", "map_dense_cloud.ply", "map_sparse.ply"
@@ -254,6 +254,7 @@ GHOSTS_AMONG_PEOPLE = 0.0030     # with masks, keyframes from frame 230 on
 
 @pytest.mark.real
 @pytest.mark.slow
+@pytest.mark.xdist_group(ACCURACY_GROUP)   # reads the accuracy runs' Bonn run
 def test_bonn_dense_map_leaves_no_ghosts(bonn_run, tmp_path):
     """Over the whole run the TSDF carves most of the walking people away by itself (the room was seen
     empty first), so masks and no masks differ little here; what remains is thin structures (table
@@ -271,6 +272,7 @@ def test_bonn_dense_map_leaves_no_ghosts(bonn_run, tmp_path):
 
 @pytest.mark.real
 @pytest.mark.slow
+@pytest.mark.xdist_group(ACCURACY_GROUP)   # reads the accuracy runs' Bonn run
 def test_bonn_map_built_among_people_needs_the_masks(bonn_run):
     """Keyframes from frame 230 on (people in view from the start: nothing carves them away). The
     masks must make a difference larger than the regression margins of both numbers together
@@ -291,6 +293,7 @@ def test_bonn_map_built_among_people_needs_the_masks(bonn_run):
 
 @pytest.mark.real
 @pytest.mark.slow
+@pytest.mark.xdist_group(ACCURACY_GROUP)   # reads the accuracy runs' Bonn run
 def test_bonn_sparse_map_from_a_map_file_and_dataset(bonn_run, tmp_path):
     out, _config, dataset, _pose_at = bonn_run
     assert export("--map", out / "map.npz", "--dataset", dataset.root, "--sparse", "--out", tmp_path) == 0
