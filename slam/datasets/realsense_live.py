@@ -25,7 +25,7 @@ import numpy as np
 
 from slam.core.errors import DynslamError, RuntimeFailure
 
-from .base import RGBDFrame
+from .base import DatasetDefaults, RGBDFrame
 
 log = logging.getLogger("dynslam")
 
@@ -66,7 +66,7 @@ def opencv_distortion(model, coeffs, where: str) -> list[float]:
     return (values + [0.0] * 5)[:5]
 
 
-class RealSenseCamera:
+class RealSenseCamera(DatasetDefaults):
     """Frames of a live RealSense camera; follows ``RGBDDataset`` except that it has no length.
 
     ``serial`` picks a camera (None: the first); ``width`` x ``height`` at ``fps`` is requested for both
