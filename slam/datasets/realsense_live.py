@@ -79,10 +79,7 @@ class RealSenseCamera(DatasetDefaults):
                  timeout_s: float = 5.0) -> None:
         rs = import_pyrealsense2()
         self._rs = rs
-        self.root = None            # no folder: the run keeps copies of its keyframe images
-        self.missing: list = []
-        self.skipped: list = []
-        self.dropped = 0
+        self.dropped = 0            # (no root, the default: the run keeps copies of its keyframe images)
         self._last_number: Optional[int] = None
         self.timeout_ms = int(round(timeout_s * 1000))
         self._pipeline = rs.pipeline()
