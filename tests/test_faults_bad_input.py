@@ -25,7 +25,7 @@ from _fault_helpers import frame_lines
 from conftest import FAULT_TUM_FRAMES as TUM_FRAMES
 from conftest import model_file, read_summary, synthetic_config, synthetic_sequence, write_bag
 from slam.cli import main, resolve_run_config
-from slam.datasets import DatasetWarning, TumDataset
+from slam.datasets import DatasetDefaults, DatasetWarning, TumDataset
 from slam.run.evaluation import ate
 from slam.run.pipeline import Pipeline
 from slam.runtime.system import System
@@ -69,7 +69,7 @@ def test_truncated_png_and_zero_byte_depth_are_skipped_by_name(tum_folder, tmp_p
 
 # --- 4. depth dropout ----------------------------------------------------------------------------------
 
-class DepthDropout:
+class DepthDropout(DatasetDefaults):
     """A dataset whose depth is all zero for ``count`` frames from ``start`` (the colour is intact)."""
 
     def __init__(self, dataset, start: int, count: int):

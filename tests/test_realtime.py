@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import synthetic_config, synthetic_sequence
-from slam.datasets.base import RGBDFrame
+from slam.datasets.base import DatasetDefaults, RGBDFrame
 from slam.datasets.replay import RealtimeReplay
 from slam.run.pipeline import Pipeline
 from slam.runtime.system import System
@@ -32,9 +32,27 @@ class SimulatedClock:
         self.now += seconds
 
 
-def _frames(n: int, period: float = 1.0) -> list[RGBDFrame]:
+class _Recording(DatasetDefaults):
+    """Frames held in memory, as a recorded dataset (RGBDDataset)."""
+
+    name = "recording"
+
+    def __init__(self, frames: list[RGBDFrame]):
+        self.frames = frames
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __iter__(self):
+        return iter(self.frames)
+
+    def groundtruth(self):
+        return None
+
+
+def _frames(n: int, period: float = 1.0) -> _Recording:
     tiny = np.zeros((1, 1), np.float32)
-    return [RGBDFrame(i, 100.0 + i * period, tiny, tiny) for i in range(n)]
+    return _Recording([RGBDFrame(i, 100.0 + i * period, tiny, tiny) for i in range(n)])
 
 
 def _replay(frames, clock: SimulatedClock, cost: float) -> list[tuple[int, float]]:
@@ -69,10 +87,10 @@ def test_a_slow_system_gets_the_newest_due_frame_and_the_rest_are_counted_droppe
 def test_the_last_frame_is_never_dropped_and_an_empty_source_gives_nothing():
     clock = SimulatedClock()
     assert [i for i, _ in _replay(_frames(3), clock, cost=100.0)] == [0, 2]
-    assert _replay([], SimulatedClock(), cost=1.0) == []
+    assert _replay(_Recording([]), SimulatedClock(), cost=1.0) == []
 
 
-class _Live:
+class _Live(DatasetDefaults):
     """A source that says it is live (like slam.datasets.realsense_live.RealSenseCamera)."""
 
     live = True

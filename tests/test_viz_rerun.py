@@ -20,7 +20,7 @@ import pytest
 
 from conftest import in_ci, read_summary, synthetic_config, synthetic_sequence
 from slam.cli import main
-from slam.datasets import DatasetError
+from slam.datasets import DatasetDefaults, DatasetError
 from slam.run.pipeline import Pipeline
 from slam.run.viz_rerun import INSTALL_HINT, dynamic_colors, ground_truth_in_world, thin_path
 
@@ -109,7 +109,7 @@ def test_viz_save_file_is_complete_and_shared(demo_recording):
     assert no_temp_files(rrd.parent)
 
 
-class FailingAt:
+class FailingAt(DatasetDefaults):
     """A generated sequence whose reading fails (``error``) or is interrupted by Ctrl-C at frame ``stop``."""
 
     def __init__(self, sequence, stop: int, error: bool):

@@ -54,8 +54,7 @@ def cmd_run(args) -> int:
     opener = open_live if is_live_source(args.dataset) else open_recorded
     dataset, config = opener(args.dataset, args.config, overrides, args.output)
     with contextlib.ExitStack() as stack:
-        if hasattr(dataset, "close"):   # a live camera: stopped on every way out (Ctrl-C, errors)
-            stack.callback(dataset.close)
+        stack.callback(dataset.close)   # a live camera stops on every way out (Ctrl-C, errors)
         if args.blackout:
             dataset = _blackout(dataset, args.blackout)
         output = ensure_output_dir(args.output or _default_output(dataset.name))

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional, Union
 
-from .base import RGBDDataset, RGBDFrame
+from .base import DatasetDefaults, RGBDDataset, RGBDFrame, frames_of
 from .folder import INTRINSICS_FILE, ImageFolderDataset, is_image_folder, read_folder_intrinsics
 from .realsense_bag import RealSenseBagDataset, is_realsense_bag, read_realsense_camera
 from .replay import RealtimeReplay

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Optional, Protocol
+from typing import Generator, Iterator, Optional, Protocol, Sequence
 
 import numpy as np
 
@@ -27,9 +27,23 @@ class RGBDFrame:
 
 
 class RGBDDataset(Protocol):
-    """What the pipeline needs from a sequence."""
+    """What the pipeline needs from a sequence. A source with nothing to say in the bookkeeping members
+    (``root`` ... ``dropped``) inherits ``DatasetDefaults`` for them."""
 
     name: str
+    root: Optional[Path]
+    """The folder or file the frames come from (summary.json's ``dataset_path``); None: generated or live."""
+    reopenable: bool
+    """Whether map export can open ``root`` again as a TUM folder and read any keyframe's images back;
+    else the run keeps copies of its keyframe images (``keyframes/``)."""
+    live: bool
+    """Paced by a camera: the run is in realtime mode unless ``runtime.realtime`` says otherwise."""
+    skipped: Sequence[tuple[object, str]]
+    """(where, why) of each frame that could not be read, as the frames are read."""
+    missing: Sequence[Path]
+    """Files the sequence lists that are not there (left out of the frames)."""
+    dropped: Optional[int]
+    """Frames dropped because processing was slower than the source (live, replay); None: it never drops."""
 
     def __len__(self) -> int: ...
 
@@ -38,3 +52,28 @@ class RGBDDataset(Protocol):
     def groundtruth(self) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """(timestamps (N,), poses (N,4,4) camera-to-world) or None when the sequence has none."""
         ...
+
+    def close(self) -> None:
+        """Release what the source holds open (a live camera stops); called on every way out of a run."""
+        ...
+
+
+class DatasetDefaults:
+    """``RGBDDataset``'s bookkeeping members for a source that has nothing to report in them: no folder,
+    nothing skipped or missing, never drops a frame. A source overrides what it knows."""
+
+    root: Optional[Path] = None
+    reopenable: bool = False
+    live: bool = False
+    skipped: Sequence[tuple[object, str]] = ()
+    missing: Sequence[Path] = ()
+    dropped: Optional[int] = None
+
+    def close(self) -> None:
+        """Nothing held open between runs (a reader thread ends with its frames' iterator)."""
+
+
+def frames_of(dataset: RGBDDataset) -> Generator[RGBDFrame, None, None]:
+    """The dataset's frames as a generator whose ``close()`` also closes the dataset's own iterator when
+    that has a ``close`` (PEP 380's ``yield from``): stopping early stops a reader thread or a camera."""
+    yield from dataset

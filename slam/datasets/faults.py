@@ -20,13 +20,18 @@ class Blackout:
         if start < 0 or count < 0:
             raise ValueError(f"blackout needs start >= 0 and count >= 0, got {start}:{count}")
         self.dataset, self.start, self.count = dataset, start, count
-        self.name = f"{getattr(dataset, 'name', 'dataset')}_blackout{start}-{start + count - 1}"
+        self.name = f"{dataset.name}_blackout{start}-{start + count - 1}"
 
     def __len__(self) -> int:
         return len(self.dataset)
 
-    def __getattr__(self, attr):  # timestamps, root, skipped, missing, ... of the wrapped dataset
-        return getattr(self.dataset, attr)
+    # The wrapped dataset's bookkeeping (RGBDDataset): the blanked frames are read, then replaced.
+    root = property(lambda self: self.dataset.root)
+    reopenable = property(lambda self: self.dataset.reopenable)
+    live = property(lambda self: self.dataset.live)
+    skipped = property(lambda self: self.dataset.skipped)
+    missing = property(lambda self: self.dataset.missing)
+    dropped = property(lambda self: self.dataset.dropped)
 
     def __iter__(self) -> Iterator[RGBDFrame]:
         for position, frame in enumerate(self.dataset):
@@ -36,3 +41,6 @@ class Blackout:
 
     def groundtruth(self):
         return self.dataset.groundtruth()
+
+    def close(self) -> None:
+        self.dataset.close()

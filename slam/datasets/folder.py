@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 import yaml
 
-from .base import RGBDFrame
+from .base import DatasetDefaults, RGBDFrame
 from .tum import DatasetError, DatasetWarning, _imread, _name_list, associate
 
 PathLike = Union[str, Path]
@@ -127,7 +127,7 @@ def pair_files(colour: list[Path], depth: list[Path], max_dt: float) -> tuple[np
                        f"folders (e.g. {colour[0].name}, {depth[0].name})")
 
 
-class ImageFolderDataset:
+class ImageFolderDataset(DatasetDefaults):
     """RGB-D frames of a folder of images plus ``intrinsics.yaml`` (module docstring); ``RGBDDataset``.
 
     ``depth_scale`` (units per metre) defaults to the YAML's; ``frame.index`` is the pair's position.

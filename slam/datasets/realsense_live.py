@@ -25,7 +25,7 @@ import numpy as np
 
 from slam.core.errors import DynslamError, RuntimeFailure
 
-from .base import RGBDFrame
+from .base import DatasetDefaults, RGBDFrame
 
 log = logging.getLogger("dynslam")
 
@@ -66,7 +66,7 @@ def opencv_distortion(model, coeffs, where: str) -> list[float]:
     return (values + [0.0] * 5)[:5]
 
 
-class RealSenseCamera:
+class RealSenseCamera(DatasetDefaults):
     """Frames of a live RealSense camera; follows ``RGBDDataset`` except that it has no length.
 
     ``serial`` picks a camera (None: the first); ``width`` x ``height`` at ``fps`` is requested for both
@@ -79,10 +79,7 @@ class RealSenseCamera:
                  timeout_s: float = 5.0) -> None:
         rs = import_pyrealsense2()
         self._rs = rs
-        self.root = None            # no folder: the run keeps copies of its keyframe images
-        self.missing: list = []
-        self.skipped: list = []
-        self.dropped = 0
+        self.dropped = 0            # (no root, the default: the run keeps copies of its keyframe images)
         self._last_number: Optional[int] = None
         self.timeout_ms = int(round(timeout_s * 1000))
         self._pipeline = rs.pipeline()

@@ -17,28 +17,35 @@ from __future__ import annotations
 import time
 from typing import Callable, Iterator
 
-from slam.datasets.base import RGBDFrame
+from slam.datasets.base import RGBDFrame, frames_of
 
 
 class RealtimeReplay:
     def __init__(self, dataset, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep):
         self.dataset, self.clock, self.sleep = dataset, clock, sleep
-        self.name = getattr(dataset, "name", "dataset")
+        self.name = dataset.name
         self.dropped = 0
 
     def __len__(self) -> int:
         return len(self.dataset)
 
-    def __getattr__(self, attr):   # root, timestamps, skipped, missing, ... of the wrapped dataset
-        return getattr(self.dataset, attr)
+    # The wrapped recording's bookkeeping (RGBDDataset); ``dropped`` is this replay's own.
+    root = property(lambda self: self.dataset.root)
+    reopenable = property(lambda self: self.dataset.reopenable)
+    live = property(lambda self: self.dataset.live)
+    skipped = property(lambda self: self.dataset.skipped)
+    missing = property(lambda self: self.dataset.missing)
 
     def groundtruth(self):
         return self.dataset.groundtruth()
 
+    def close(self) -> None:
+        self.dataset.close()
+
     def __iter__(self) -> Iterator[RGBDFrame]:
         self.dropped = 0
-        frames = iter(self.dataset)
+        frames = frames_of(self.dataset)
         try:
             current = next(frames, None)
             if current is None:
@@ -56,4 +63,4 @@ class RealtimeReplay:
                 yield current
                 current, upcoming = upcoming, (next(frames, None) if upcoming is not None else None)
         finally:   # stopping early (Ctrl-C, --max-frames) stops the wrapped source's reading too
-            getattr(frames, "close", lambda: None)()
+            frames.close()

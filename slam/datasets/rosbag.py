@@ -18,7 +18,7 @@ from typing import Iterator, Optional, Union
 
 import numpy as np
 
-from .base import RGBDFrame
+from .base import DatasetDefaults, RGBDFrame
 from .tum import DatasetError, DatasetWarning, associate
 
 PathLike = Union[str, Path]
@@ -201,7 +201,7 @@ def image_array(msg, topic: str) -> np.ndarray:
     return np.ascontiguousarray(bgr)
 
 
-class RosbagDataset:
+class RosbagDataset(DatasetDefaults):
     """RGB-D frames of a ROS 1 or ROS 2 bag (see the module docstring); follows ``RGBDDataset``.
 
     ``frame.index`` is the pair's position in ``timestamps``; frames whose colour and depth sizes

@@ -26,7 +26,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from .base import RGBDFrame
+from .base import DatasetDefaults, RGBDFrame
 from .synthetic_movers import MOVER_PRESETS, Mover, WalkLoop, mover_kinds  # noqa: F401  (some re-exported)
 from .synthetic_planning import MoverPlanner
 from .synthetic_primitives import _EDGES, _NEAR, _SIGNS, TEXEL, Box, add_textures, static_pose
@@ -128,7 +128,7 @@ def _box_hits(d: list[np.ndarray], ol: np.ndarray, half: np.ndarray, inside: boo
     return t, face
 
 
-class SyntheticSequence:
+class SyntheticSequence(DatasetDefaults):
     """A lazily rendered synthetic RGB-D sequence following the ``RGBDDataset`` protocol.
 
     ``intrinsics`` is (fx, fy, cx, cy) with no distortion; ``groundtruth()`` gives the exact poses.

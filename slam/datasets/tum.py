@@ -25,7 +25,7 @@ import yaml
 
 from slam.core.errors import DynslamError
 
-from .base import RGBDFrame
+from .base import DatasetDefaults, RGBDFrame
 
 PathLike = Union[str, Path]
 
@@ -241,12 +241,14 @@ def _name_list(names: list[str]) -> str:
     return shown + (f" and {more} more" if more > 0 else "")
 
 
-class TumDataset:
+class TumDataset(DatasetDefaults):
     """Lazily read RGB-D frames of a TUM-layout folder; see the module docstring for the layout.
 
     ``frame.index`` is the frame's position in ``timestamps`` (kept when a corrupt frame is skipped), so
     ``dataset.timestamps[frame.index] == frame.timestamp``.
     """
+
+    reopenable = True    # map export reads keyframe images back from the folder
 
     def __init__(self, root: PathLike, depth_scale: float = 5000.0, max_dt: float = 0.02) -> None:
         self.root = Path(root)

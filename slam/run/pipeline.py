@@ -48,8 +48,9 @@ from typing import Callable, Optional, Protocol, Sequence
 
 import numpy as np
 
+from backend.map_io import LoadedMap
 from slam.core.config import SlamConfig
-from slam.datasets.base import RGBDDataset, RGBDFrame
+from slam.datasets.base import RGBDDataset, RGBDFrame, frames_of
 from slam.datasets.replay import RealtimeReplay
 from slam.run.evaluation import EvaluationReport, format_report
 from slam.run.input_checks import InputChecks
@@ -71,7 +72,7 @@ def _paced(dataset, config: SlamConfig):
     (it drops frames whatever the system does); a recording in realtime mode is replayed at its recorded
     rate (unless the caller already gave a replay, e.g. with its own clock). The caller's config is not
     changed."""
-    live = bool(getattr(dataset, "live", False))
+    live = bool(dataset.live)
     if config.runtime.realtime is None:
         config = config.model_copy(deep=True)
         config.runtime.realtime = live
@@ -115,21 +116,22 @@ class Pipeline:
         self.progress = progress
         self.save_map_path = Path(save_map) if save_map is not None else None
         if prior_map is None:
-            self.system = System(config, sequence_name=getattr(dataset, "name", ""), detector=detector)
-        else:  # a SlamMap, or a backend.map_io.LoadedMap that also brings its vocabulary and words
-            places = getattr(prior_map, "places", None)
-            self.system = System(config, sequence_name=getattr(dataset, "name", ""), detector=detector,
-                                 prior_map=getattr(prior_map, "slam_map", prior_map), localization_only=True,
+            self.system = System(config, sequence_name=dataset.name, detector=detector)
+        else:  # a SlamMap, or a LoadedMap (backend.map_io.load_map) that also brings its vocabulary and words
+            loaded = isinstance(prior_map, LoadedMap)
+            places = prior_map.places if loaded else None
+            self.system = System(config, sequence_name=dataset.name, detector=detector,
+                                 prior_map=prior_map.slam_map if loaded else prior_map, localization_only=True,
                                  vocabulary=places.vocabulary if places else None,
                                  prior_words=places.bows if places else None)
-        root = getattr(dataset, "root", None)
-        self.summary = RunSummary(dataset=getattr(dataset, "name", "dataset"), output_dir=str(self.output_dir),
+        root = dataset.root
+        self.summary = RunSummary(dataset=dataset.name, output_dir=str(self.output_dir),
                                   dataset_path=None if root is None else str(Path(root).resolve()),
                                   realtime=bool(config.runtime.realtime))
         self._pose_sigmas: list[tuple[float, int]] = []    # (sigma m, frame index) of tracked frames
         self.report: Optional[EvaluationReport] = None
         self.artifacts = RunArtifacts(self.output_dir, config, needs_keyframe_copies(dataset))  # export inputs
-        self.checks = InputChecks(config.camera.width, config.camera.height, getattr(dataset, "name", "dataset"))
+        self.checks = InputChecks(config.camera.width, config.camera.height, dataset.name)
         self.dynamic_strip: StripRecorder = NullStripRecorder()   # the run's own is made when it starts
 
     def run(self) -> RunSummary:
@@ -170,12 +172,12 @@ class Pipeline:
 
     def _run_pipeline(self, interrupt: DeferredInterrupt) -> None:
         self.dynamic_strip = make_strip_recorder(self.config, self._expected_frames())
-        frames = iter(self.dataset)
+        frames = frames_of(self.dataset)
         try:
             with TumStreamWriter(self.output_dir / "trajectory_online.txt") as online:
                 self._track_frames(frames, interrupt, online)
         finally:   # a generator's ``finally`` runs now, not when it is collected (a live camera stops)
-            getattr(frames, "close", lambda: None)()
+            frames.close()
 
     def _track_frames(self, frames, interrupt: DeferredInterrupt, online: TumStreamWriter) -> None:
         # A dataset is read one frame ahead, so that frame's image work runs while this one is tracked
@@ -258,11 +260,11 @@ class Pipeline:
         write_final_poses(self.output_dir, self.system, self.config.output.trajectory_formats)
         summarize_system(self.summary, self.system)
         write_dynamic_counts(self.output_dir, self.system)
-        skipped = list(getattr(self.dataset, "skipped", [])) + self.checks.skipped
+        skipped = list(self.dataset.skipped) + self.checks.skipped
         self.summary.skipped_files = [f"{p}: {why}" for p, why in skipped]
         self.summary.no_depth_frames = list(self.checks.no_depth_frames)
-        self.summary.missing_files = [str(p) for p in getattr(self.dataset, "missing", [])]
-        dropped = getattr(self.dataset, "dropped", None)
+        self.summary.missing_files = [str(p) for p in self.dataset.missing]
+        dropped = self.dataset.dropped
         self.summary.dropped_frames = None if dropped is None else int(dropped)
 
     def _write_graph(self) -> None:
@@ -322,7 +324,7 @@ class Pipeline:
         timing = ", ".join(f"{name} {v['median_ms']:.1f}" for name, v in s.timing_ms.items())
         lines.append(f"median ms/frame: {timing}")
         if s.dropped_frames:
-            source = "camera" if getattr(self.dataset, "live", False) else "recording's frame rate"
+            source = "camera" if self.dataset.live else "recording's frame rate"
             lines.append(f"dropped {s.dropped_frames} frames (processing was slower than the {source})")
         elif s.realtime:
             lines.append("realtime: no frame dropped")

@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from slam.core.atomic_io import write_atomic, write_text_atomic
+from slam.datasets.base import RGBDDataset
 from slam.run.sparse_map import write_sparse_ply
 
 log = logging.getLogger("dynslam")
@@ -59,9 +60,9 @@ def depth_to_millimetres(depth: np.ndarray) -> np.ndarray:
     return np.clip(mm, 0, 65535).astype(np.uint16)
 
 
-def needs_keyframe_copies(dataset) -> bool:
-    """Whether export could not re-read the keyframes from the dataset (no folder, or no random access)."""
-    return getattr(dataset, "root", None) is None or not hasattr(dataset, "__getitem__")
+def needs_keyframe_copies(dataset: RGBDDataset) -> bool:
+    """Whether export could not read the keyframes back from the dataset (no folder it can reopen)."""
+    return dataset.root is None or not dataset.reopenable
 
 
 class RunArtifacts:

@@ -18,6 +18,7 @@ import numpy as np
 from frontend.dynamic_filter import method_names
 from slam.core.atomic_io import write_text_atomic
 from slam.core.config import SlamConfig
+from slam.datasets.base import RGBDDataset
 from slam.run.evaluation import EvaluationError, EvaluationReport, evaluate
 from slam.run.trajectory import format_tum_line, tum_rows_from_poses, write_tum
 from slam.runtime.system import System
@@ -117,14 +118,14 @@ def write_graph(output_dir: Path, system: System, config: SlamConfig) -> None:
     export_json(output_dir / "graph.json", ids, stamps, poses, edges)
 
 
-def evaluate_run(output_dir: Path, dataset, system: System, max_dt: float) -> Optional[EvaluationReport]:
+def evaluate_run(output_dir: Path, dataset: RGBDDataset, system: System, max_dt: float) -> Optional[EvaluationReport]:
     """ATE / RPE against the dataset's ground truth into evaluation.json (a generated sequence's exact path
     also into groundtruth.txt); None without ground truth or when the two cannot be associated (a
     warning says why)."""
     gt = dataset.groundtruth()
     if gt is None:
         return None
-    if getattr(dataset, "root", None) is None:  # generated: keep the exact path beside the result
+    if dataset.root is None:  # generated or live: keep the exact path beside the result
         write_tum(output_dir / "groundtruth.txt", *gt)
     stamps, poses, tracked = system.trajectory()
     try:
