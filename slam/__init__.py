@@ -23,6 +23,9 @@ _PUBLIC = {
     "open_dataset": "slam.datasets",
     "SyntheticSequence": "slam.datasets",
     "TumDataset": "slam.datasets",
+    "RGBDDataset": "slam.datasets",
+    "RGBDFrame": "slam.datasets",
+    "DatasetDefaults": "slam.datasets",
     "evaluate_files": "slam.run.evaluation",
 }
 __all__ = sorted(_PUBLIC)
