@@ -12,11 +12,11 @@ from typing import Iterator
 
 import numpy as np
 
-from slam.datasets.base import RGBDFrame
+from slam.datasets.base import RGBDDataset, RGBDFrame
 
 
 class Blackout:
-    def __init__(self, dataset, start: int, count: int):
+    def __init__(self, dataset: RGBDDataset, start: int, count: int):
         if start < 0 or count < 0:
             raise ValueError(f"blackout needs start >= 0 and count >= 0, got {start}:{count}")
         self.dataset, self.start, self.count = dataset, start, count

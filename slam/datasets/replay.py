@@ -17,11 +17,11 @@ from __future__ import annotations
 import time
 from typing import Callable, Iterator
 
-from slam.datasets.base import RGBDFrame, frames_of
+from slam.datasets.base import RGBDDataset, RGBDFrame, frames_of
 
 
 class RealtimeReplay:
-    def __init__(self, dataset, clock: Callable[[], float] = time.monotonic,
+    def __init__(self, dataset: RGBDDataset, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep):
         self.dataset, self.clock, self.sleep = dataset, clock, sleep
         self.name = dataset.name
