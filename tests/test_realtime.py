@@ -33,12 +33,12 @@ class SimulatedClock:
 
 
 class _Recording(DatasetDefaults):
-    """Frames held in memory, as a recorded dataset (RGBDDataset)."""
+    """Frames held in memory, as a recorded dataset (RGBDDataset), or as a live source says it is."""
 
     name = "recording"
 
-    def __init__(self, frames: list[RGBDFrame]):
-        self.frames = frames
+    def __init__(self, frames: list[RGBDFrame], live: bool = False):
+        self.frames, self.live = frames, live
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -90,27 +90,12 @@ def test_the_last_frame_is_never_dropped_and_an_empty_source_gives_nothing():
     assert _replay(_Recording([]), SimulatedClock(), cost=1.0) == []
 
 
-class _Live(DatasetDefaults):
-    """A source that says it is live (like slam.datasets.realsense_live.RealSenseCamera)."""
-
-    live = True
-
-    def __init__(self, seq):
-        self.seq, self.name = seq, "live"
-
-    def __iter__(self):
-        return iter(self.seq)
-
-    def groundtruth(self):
-        return None
-
-
 def test_realtime_defaults_to_on_for_a_live_source_and_off_for_a_recording(tmp_path):
     seq = synthetic_sequence(4)
     config = synthetic_config(seq)
     assert config.runtime.realtime is None
     recorded = Pipeline(seq, config, tmp_path / "a")
-    live = Pipeline(_Live(seq), config, tmp_path / "b")
+    live = Pipeline(_Recording(list(seq), live=True), config, tmp_path / "b")  # like RealSenseCamera
     try:
         assert recorded.config.runtime.realtime is False and recorded.dataset is seq
         assert live.config.runtime.realtime is True and not isinstance(live.dataset, RealtimeReplay)

@@ -5,8 +5,7 @@ not slowed by it. (Measured and not kept, 2026-11-27: cpr's registration in such
 bits and no speed - Bonn crowd-480 whole run 95.1 vs 94.3 ms/frame, means of 3 alternating runs each -
 because a run is bound by its CPU on 2 cores, ~140 ms per frame, not by the GIL.) Every worker is forked from one forkserver: not from the main
 process, whose detector and OpenCV threads a fork would copy mid-state; and the server has the workers'
-modules imported once (each worker module calls ``preload(__name__)`` when it is imported, before any
-worker starts), so a worker starts in milliseconds.
+worker's module (its target's) imported once, so a worker starts in milliseconds.
 
 A worker ignores SIGINT (Ctrl-C is the main process's to handle: it still finishes the run and writes
 complete files), stops when its pipe closes, and is a daemon, so no process outlives the run.
@@ -18,15 +17,6 @@ import signal
 import sys
 from contextlib import contextmanager
 from typing import Callable
-
-_PRELOAD: set[str] = set()
-
-
-def preload(module: str) -> None:
-    """Have the forkserver import ``module`` when it starts (no effect once it runs: then a worker
-    imports what it needs itself)."""
-    _PRELOAD.add(module)
-
 
 @contextmanager
 def _main_module_hidden():
@@ -52,7 +42,7 @@ def start_worker(target: Callable, args: tuple, name: str):
     process name); returns (process, this side's connection). ``target`` must call ``worker_started(name)``
     first."""
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(sorted(_PRELOAD))
+    ctx.set_forkserver_preload([target.__module__])   # read when the server starts (the first worker)
     conn, child = ctx.Pipe()
     process = ctx.Process(target=target, args=(*args, child), name=name, daemon=True)
     # SIGINT stays blocked from before the (first) server starts until the worker ignores it: a Ctrl-C

@@ -73,6 +73,31 @@ class DatasetDefaults:
         """Nothing held open between runs (a reader thread ends with its frames' iterator)."""
 
 
+class DatasetWrapper:
+    """A dataset around another (a fault injected, a replay's pacing): its name, length, ground truth and
+    bookkeeping are the wrapped dataset's unless the wrapper says otherwise; it writes ``__iter__``."""
+
+    def __init__(self, dataset: RGBDDataset):
+        self.dataset = dataset
+        self.name = dataset.name
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    root = property(lambda self: self.dataset.root)
+    reopenable = property(lambda self: self.dataset.reopenable)
+    live = property(lambda self: self.dataset.live)
+    skipped = property(lambda self: self.dataset.skipped)
+    missing = property(lambda self: self.dataset.missing)
+    dropped = property(lambda self: self.dataset.dropped)
+
+    def groundtruth(self) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        return self.dataset.groundtruth()
+
+    def close(self) -> None:
+        self.dataset.close()
+
+
 def frames_of(dataset: RGBDDataset) -> Generator[RGBDFrame, None, None]:
     """The dataset's frames as a generator whose ``close()`` also closes the dataset's own iterator when
     that has a ``close`` (PEP 380's ``yield from``): stopping early stops a reader thread or a camera."""

@@ -12,35 +12,19 @@ from typing import Iterator
 
 import numpy as np
 
-from slam.datasets.base import RGBDDataset, RGBDFrame
+from slam.datasets.base import DatasetWrapper, RGBDDataset, RGBDFrame
 
 
-class Blackout:
+class Blackout(DatasetWrapper):
     def __init__(self, dataset: RGBDDataset, start: int, count: int):
         if start < 0 or count < 0:
             raise ValueError(f"blackout needs start >= 0 and count >= 0, got {start}:{count}")
-        self.dataset, self.start, self.count = dataset, start, count
+        super().__init__(dataset)
+        self.start, self.count = start, count
         self.name = f"{dataset.name}_blackout{start}-{start + count - 1}"
-
-    def __len__(self) -> int:
-        return len(self.dataset)
-
-    # The wrapped dataset's bookkeeping (RGBDDataset): the blanked frames are read, then replaced.
-    root = property(lambda self: self.dataset.root)
-    reopenable = property(lambda self: self.dataset.reopenable)
-    live = property(lambda self: self.dataset.live)
-    skipped = property(lambda self: self.dataset.skipped)
-    missing = property(lambda self: self.dataset.missing)
-    dropped = property(lambda self: self.dataset.dropped)
 
     def __iter__(self) -> Iterator[RGBDFrame]:
         for position, frame in enumerate(self.dataset):
             if self.start <= position < self.start + self.count:
                 frame = replace(frame, rgb=np.zeros_like(frame.rgb), depth=np.zeros_like(frame.depth))
             yield frame
-
-    def groundtruth(self):
-        return self.dataset.groundtruth()
-
-    def close(self) -> None:
-        self.dataset.close()

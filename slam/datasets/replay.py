@@ -17,31 +17,17 @@ from __future__ import annotations
 import time
 from typing import Callable, Iterator
 
-from slam.datasets.base import RGBDDataset, RGBDFrame, frames_of
+from slam.datasets.base import DatasetWrapper, RGBDDataset, RGBDFrame, frames_of
 
 
-class RealtimeReplay:
+class RealtimeReplay(DatasetWrapper):
+    dropped: int = 0     # this replay's own count (not the recording's): set by each pass over the frames
+
     def __init__(self, dataset: RGBDDataset, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep):
-        self.dataset, self.clock, self.sleep = dataset, clock, sleep
-        self.name = dataset.name
+        super().__init__(dataset)
+        self.clock, self.sleep = clock, sleep
         self.dropped = 0
-
-    def __len__(self) -> int:
-        return len(self.dataset)
-
-    # The wrapped recording's bookkeeping (RGBDDataset); ``dropped`` is this replay's own.
-    root = property(lambda self: self.dataset.root)
-    reopenable = property(lambda self: self.dataset.reopenable)
-    live = property(lambda self: self.dataset.live)
-    skipped = property(lambda self: self.dataset.skipped)
-    missing = property(lambda self: self.dataset.missing)
-
-    def groundtruth(self):
-        return self.dataset.groundtruth()
-
-    def close(self) -> None:
-        self.dataset.close()
 
     def __iter__(self) -> Iterator[RGBDFrame]:
         self.dropped = 0

@@ -44,9 +44,8 @@ from backend.local_mapping import build_graph
 from slam.core.config import BackendConfig
 from slam.core.geometry import relative_pose_residual
 from slam.core.timing import thread_cpu_ms
-from slam.core.worker_process import preload, start_worker, stop_worker, worker_started
+from slam.core.worker_process import start_worker, stop_worker, worker_started
 
-preload(__name__)
 _WORKER_NAME = "dynslam-mapping"
 
 
