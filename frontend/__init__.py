@@ -2,9 +2,9 @@
 ONNX detector and the dynamic-feature methods (``frontend.dynamic``). It never imports ``backend``."""
 from __future__ import annotations
 
-from typing import Any
+from slam.core.lazy_exports import lazy_exports
 
-# name -> module: imported on first use (PEP 562), so importing one submodule stays light
+# name -> module, imported on first use (slam/core/lazy_exports.py)
 _PUBLIC = {
     "OrbExtractor": "frontend.orb_extractor",
     "Tracker": "frontend.tracker",
@@ -19,16 +19,4 @@ _PUBLIC = {
 }
 __all__ = sorted(_PUBLIC)
 
-
-def __getattr__(name: str) -> Any:
-    if name not in _PUBLIC:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    from importlib import import_module
-
-    value = getattr(import_module(_PUBLIC[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_PUBLIC))
+__getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

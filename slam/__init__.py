@@ -8,9 +8,9 @@ Layers (README, "Layout"): ``slam.core`` < ``frontend``, ``backend``, ``slam.dat
 < ``slam.run`` < ``slam.cli``."""
 from __future__ import annotations
 
-from typing import Any
+from slam.core.lazy_exports import lazy_exports
 
-# name -> module: imported on first use (PEP 562), so importing one submodule stays light
+# name -> module, imported on first use (slam/core/lazy_exports.py)
 _PUBLIC = {
     "System": "slam.runtime.system",
     "FrameOutput": "slam.runtime.system",
@@ -30,16 +30,4 @@ _PUBLIC = {
 }
 __all__ = sorted(_PUBLIC)
 
-
-def __getattr__(name: str) -> Any:
-    if name not in _PUBLIC:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    from importlib import import_module
-
-    value = getattr(import_module(_PUBLIC[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_PUBLIC))
+__getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

@@ -174,11 +174,12 @@ def test_detector_free_method_needs_no_model(tmp_path, monkeypatch):
 
 def test_blackout_option_marks_blank_frames_lost(tmp_path):
     from slam.cli import main
-    from slam.datasets import SyntheticSequence, write_tum_layout
+    from slam.datasets import DatasetWarning, SyntheticSequence, write_tum_layout
 
     folder = write_tum_layout(SyntheticSequence(n_frames=20), tmp_path / "seq")
     out = tmp_path / "out"
-    assert main(["run", str(folder), "-o", str(out), "-q", "-c", "static", "--blackout", "8:4"]) == 0
+    with pytest.warns(DatasetWarning, match=r"frame 8 .* has no valid depth; tracking without depth"):
+        assert main(["run", str(folder), "-o", str(out), "-q", "-c", "static", "--blackout", "8:4"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["lost_frames"] == [8, 9, 10, 11] and summary["tracked"] == 16
     lines = (out / "trajectory.txt").read_text().splitlines()

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from frontend.dynamic.base import Detection, DynamicContext, keypoints_in_mask
-from frontend.dynamic.flow_epipolar import (FlowEpipolarMethod, bayes_posterior, cell_coverage,
-                                            epipolar_distance, grid_edges, threshold_to_half)
+from frontend.dynamic.flow_epipolar import FlowEpipolarMethod, epipolar_distance
+from frontend.dynamic.grid_propagation import bayes_posterior, cell_coverage, grid_edges, threshold_to_half
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import ClassGroups, FlowEpipolarConfig
 from slam.core.frame import FeatureFrame
@@ -266,13 +266,13 @@ def test_prior_is_mean_of_last_history_posteriors():
     # No previous frame -> no motion evidence -> the box is dynamic; its fully covered cells get
     # posterior = likelihood (neutral initial prior 0.5).
     step(m, make_ctx(render(0.0), 0, [box]))
-    prior = m.prior()
+    prior = m.grid.prior()
     assert prior.max() == pytest.approx(0.9) and prior.min() == pytest.approx(0.1)
     for k in range(1, 5):
         step(m, make_ctx(render(CAMERA_STEP * k), k, []))
-    assert len(m._history) == 3
-    np.testing.assert_allclose(m.prior(), np.mean(np.stack(m._history), axis=0))
-    assert m.prior().max() < 0.5
+    assert len(m.grid.history) == 3
+    np.testing.assert_allclose(m.grid.prior(), np.mean(np.stack(m.grid.history), axis=0))
+    assert m.grid.prior().max() < 0.5
 
 
 def test_deterministic():

@@ -65,20 +65,7 @@ Choices where the paper is silent or vague (all in ``FlowEpipolarConfig``):
   the detections only: every sub-box of a dynamic box counts as dynamic. The first frame initialises
   the map, where the conservative choice is safest; one frame later Algorithm 1 releases a still
   person again (a 0.9 prior meeting a 0.1 likelihood gives a posterior of 0.5, not removed).
-* Prior without history: ``initial_prior`` = 0.5, the uninformative prior for which the posterior
-  equals the likelihood (0.9 / 0.1), so the first frames' grid is Algorithm 1's coverage itself.
-  With fewer than ``history`` frames the prior is the mean of the posteriors available.
-* Posteriors are clamped to [``prob_clamp``, 1 - ``prob_clamp``] (0.05) before they enter the history.
-  The literal recursion drives a static cell's posterior geometrically to 0 (or a long-dynamic cell to
-  1), after which the 0.9 / 0.1 likelihood can never move it: after the 230 static frames at the start
-  of Bonn crowd Algorithm 2 would never mark the people. Note that one static-likelihood frame divides
-  the prior odds by 9, so a cell survives a detection miss only when the mean of its last 10
-  posteriors is > 0.9. With the 0.05 clamp a newly dynamic cell is removed from its 3rd consecutive
-  dynamic frame and, after >= 15 consecutive dynamic frames, stays removed for 1-2 frames without
-  evidence. A 0.01 clamp needs 6 frames to rise and leaves trails of up to 5 frames (more removal of
-  the static background a person just left, which the paper reports for W/static) while recovering no
-  more missed frames in simulation. Removal uses ``posterior > remove_threshold + 1e-9`` so that the
-  exact 0.5 of a 0.9 prior meeting a 0.1 likelihood does not flip on rounding.
+* Algorithm 2's prior without history and its clamp: ``frontend/dynamic/grid_propagation.py``.
 * Only ``ClassGroups.dynamic`` boxes are examined: the paper considers people, animals and vehicles
   potential dynamic objects and has no passive-object class.
 
@@ -91,39 +78,14 @@ for the whole history window.
 """
 from __future__ import annotations
 
-from collections import deque
 from typing import Optional
 
 import cv2
 import numpy as np
 
 from frontend.dynamic.base import Detection, DynamicContext, MethodOutput
+from frontend.dynamic.grid_propagation import GridPropagation, above_threshold, point_cells
 from slam.core.dynamic_config import ClassGroups, FlowEpipolarConfig
-
-
-def bayes_posterior(likelihood: np.ndarray, prior: np.ndarray) -> np.ndarray:
-    """PPS-SLAM Eqs. 8-10: L P / (L P + (1 - L)(1 - P))."""
-    a = likelihood * prior
-    b = (1.0 - likelihood) * (1.0 - prior)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        post = a / (a + b)
-    return np.where(a + b > 0, post, 0.5)
-
-
-REMOVE_EPS = 1e-9   # "posterior > threshold" tolerance against rounding (0.9 * 0.1 vs 0.1 * 0.9)
-
-
-def above_threshold(p: np.ndarray, threshold: float) -> np.ndarray:
-    return p > threshold + REMOVE_EPS
-
-
-def threshold_to_half(p: np.ndarray, threshold: float) -> np.ndarray:
-    """Map probabilities piecewise-linearly so that ``above_threshold(p)`` becomes ``out >= 0.5``."""
-    t = float(np.clip(threshold, 1e-6, 1.0 - 1e-6))
-    low = 0.5 * p / t
-    high = 0.5 + 0.5 * (p - t) / (1.0 - t)
-    return np.where(above_threshold(p, t), np.clip(high, 0.5, 1.0),
-                    np.clip(low, 0.0, np.nextafter(0.5, 0.0)))
 
 
 def epipolar_distance(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
@@ -134,29 +96,6 @@ def epipolar_distance(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarr
     with np.errstate(invalid="ignore", divide="ignore"):
         d = num / den
     return np.where(den > 0, d, np.inf)
-
-
-def grid_edges(size: int, n: int) -> np.ndarray:
-    """Pixel index edges of n cells over ``size`` pixels (n + 1 values, first 0, last size)."""
-    return np.round(np.linspace(0, size, n + 1)).astype(int)
-
-
-def cell_coverage(mask: np.ndarray, row_edges: np.ndarray, col_edges: np.ndarray) -> np.ndarray:
-    """Fraction of each grid cell's pixels set in a boolean mask (integral image, no loops)."""
-    integral = cv2.integral(mask.astype(np.uint8), sdepth=cv2.CV_32S).astype(np.int64)
-    s = integral[np.ix_(row_edges, col_edges)]
-    sums = s[1:, 1:] - s[:-1, 1:] - s[1:, :-1] + s[:-1, :-1]
-    area = np.diff(row_edges)[:, None] * np.diff(col_edges)[None, :]
-    return sums / np.maximum(area, 1)
-
-
-def point_cells(xy: np.ndarray, row_edges: np.ndarray, col_edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Grid cell (row, col) of each point's nearest pixel."""
-    h, w = row_edges[-1], col_edges[-1]
-    cols = np.clip(np.rint(xy[:, 0]).astype(int), 0, w - 1)
-    rows = np.clip(np.rint(xy[:, 1]).astype(int), 0, h - 1)
-    return (np.searchsorted(row_edges, rows, side="right") - 1,
-            np.searchsorted(col_edges, cols, side="right") - 1)
 
 
 def sub_box_index(box: Detection, xy: np.ndarray, rows: int, cols: int) -> np.ndarray:
@@ -183,21 +122,12 @@ class FlowEpipolarMethod:
         self._last_level: Optional[tuple[np.ndarray, np.ndarray]] = None   # (image, at lk_start_level) of track
         self._prev_raw: Optional[np.ndarray] = None       # (M,2) float32 raw pixel coordinates
         self._prev_und: Optional[np.ndarray] = None       # (M,2) undistorted
-        self._history: deque[np.ndarray] = deque(maxlen=max(int(cfg.history), 1))
-        self._pending_posterior: Optional[np.ndarray] = None
+        self.grid = GridPropagation(cfg)
 
     # ----------------------------------------------------------------------------------------------
     def reset(self) -> None:
         self._prev_gray = self._prev_raw = self._prev_und = self._prev_shape = self._last_level = None
-        self._history.clear()
-        self._pending_posterior = None
-
-    def prior(self) -> np.ndarray:
-        """Per-cell prior: mean of the stored posteriors, or ``initial_prior`` without history."""
-        g = int(self.cfg.grid)
-        if not self._history:
-            return np.full((g, g), float(self.cfg.initial_prior))
-        return np.mean(np.stack(self._history), axis=0)
+        self.grid.reset()
 
     def _boxes(self, detections: Optional[list[Detection]]) -> list[Detection]:
         if not detections:
@@ -282,7 +212,7 @@ class FlowEpipolarMethod:
         cur_raw, ok, dyn_track, evidence = self._dynamic_tracks(ctx, boxes)
         region_mask, kp_dynamic, n_sub = self._dynamic_sub_boxes(boxes, cur_raw, ok, dyn_track, evidence,
                                                                  kp, n, (h, w))
-        posterior, cell_prob, re, ce = self._grid_probability(region_mask)
+        posterior, cell_prob, re, ce = self.grid.update(region_mask)
 
         prob = np.zeros(n)
         if n:
@@ -361,21 +291,6 @@ class FlowEpipolarMethod:
         dp = np.divide(m, k, out=np.zeros(rows * cols), where=k > 0)
         return dp > self.cfg.region_ratio
 
-    def _grid_probability(self, region_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Algorithm 2: Bayesian region probability on a grid. Returns the cell posteriors, the cell
-        probabilities mapped so that 0.5 is the removal threshold, and the grid's row and column edges;
-        keeps the clamped posterior for ``end_frame`` to add to the history."""
-        cfg = self.cfg
-        h, w = region_mask.shape
-        g = max(int(cfg.grid), 1)
-        re, ce = grid_edges(h, g), grid_edges(w, g)
-        coverage = cell_coverage(region_mask, re, ce)
-        likelihood = np.where(coverage > cfg.cover_ratio, cfg.likelihood_dynamic, cfg.likelihood_static)
-        posterior = bayes_posterior(likelihood, self.prior())
-        c = float(np.clip(cfg.prob_clamp, 0.0, 0.5))
-        self._pending_posterior = np.clip(posterior, c, 1.0 - c)
-        return posterior, threshold_to_half(posterior, cfg.remove_threshold), re, ce
-
     def end_frame(self, ctx: DynamicContext, output: MethodOutput, T_cw: Optional[np.ndarray],
                   is_keyframe: bool) -> None:
         """Keep this frame's grey image and keypoints for the flow, and its grid posterior."""
@@ -385,9 +300,7 @@ class FlowEpipolarMethod:
         self._prev_shape = ctx.gray.shape
         self._prev_raw = np.asarray(ctx.frame.uv_raw, np.float32).reshape(-1, 2)
         self._prev_und = np.asarray(ctx.frame.uv, float).reshape(-1, 2)
-        if self._pending_posterior is not None:
-            self._history.append(self._pending_posterior)
-            self._pending_posterior = None
+        self.grid.commit()
 
 
 def _fill_sub_boxes(region_mask: np.ndarray, b: Detection, dynamic_sub: np.ndarray, rows: int, cols: int) -> None:

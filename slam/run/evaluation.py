@@ -38,18 +38,13 @@ from slam.run.evaluation_rpe import rpe  # noqa: F401  (re-exported)
 from slam.run.trajectory import PathLike, read_tum
 
 
-@dataclass
-class AteResult:
-    """Absolute trajectory error. ``aligned_poses`` are the matched estimate poses
-    after applying ``alignment`` (4x4, ``s*R | t``), row-aligned with ``errors``, and so are
-    ``gt_positions`` (the matched ground-truth camera centres; None if built without them)."""
+@dataclass(frozen=True)
+class AteResult(ErrorStats):
+    """Absolute trajectory error: the statistics of the per-pose errors (``rmse`` ... ``max``) and what they
+    came from. ``aligned_poses`` are the matched estimate poses after applying ``alignment`` (4x4, ``s*R | t``),
+    row-aligned with ``errors``, and so are ``gt_positions`` (the matched ground-truth camera centres; None if
+    built without them)."""
 
-    rmse: float
-    mean: float
-    median: float
-    std: float
-    min: float
-    max: float
     n_matched: int
     errors: np.ndarray
     timestamps: np.ndarray
@@ -61,12 +56,12 @@ class AteResult:
 
     @property
     def stats(self) -> ErrorStats:
-        """The summary statistics as an :class:`ErrorStats`."""
+        """The summary statistics alone, as a plain :class:`ErrorStats`."""
         return ErrorStats(**{k: getattr(self, k) for k in _STATS})
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (statistics and alignment; no per-pose arrays)."""
-        out: dict[str, Any] = self.stats.to_dict()
+        out: dict[str, Any] = super().to_dict()
         out.update(n_matched=int(self.n_matched), scale=float(self.scale), unit="m",
                    alignment=[[float(v) for v in row] for row in self.alignment])
         return out
