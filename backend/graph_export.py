@@ -51,13 +51,17 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Protocol, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from slam.core.atomic_io import write_text_atomic
+from slam.core.config import BackendConfig
 from slam.core.geometry import invert, nearest_rotations
+
+if TYPE_CHECKING:
+    from backend.map_store import SlamMap
 
 EDGE_KINDS = ("odometry", "covisibility", "loop")
 JSON_FORMAT = "dynslam-graph"
@@ -254,14 +258,22 @@ def load_json(path) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[GraphEdge]
 
 
 # --- from a LocalMapper --------------------------------------------------------------------------------
-def mapper_keyframes(mapper) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+class MapperView(Protocol):
+    """What the export reads of a ``LocalMapper``: its map and the back end's settings (the odometry
+    sigmas its factors use)."""
+
+    map: "SlamMap"
+    cfg: BackendConfig
+
+
+def mapper_keyframes(mapper: MapperView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(kf_ids, timestamps, kf_T_wc copy) of a LocalMapper's map."""
     kfs = mapper.map.keyframes
     return (np.array([k.id for k in kfs], dtype=np.int64), np.array([k.timestamp for k in kfs], dtype=float),
             mapper.map.kf_T_wc.copy())
 
 
-def graph_edges_from_mapper(mapper, min_shared: int = 15, odometry_sigma_t: Optional[float] = None,
+def graph_edges_from_mapper(mapper: MapperView, min_shared: int = 15, odometry_sigma_t: Optional[float] = None,
                             odometry_sigma_r_deg: Optional[float] = None,
                             covisibility_sigma_t: Optional[float] = None,
                             covisibility_sigma_r_deg: Optional[float] = None) -> list[GraphEdge]:
@@ -279,10 +291,8 @@ def graph_edges_from_mapper(mapper, min_shared: int = 15, odometry_sigma_t: Opti
 
     Relative poses are ``T_ab = kf_T_wc[a]^-1 kf_T_wc[b]`` from the map's (optimised) poses.
     """
-    cfg = getattr(mapper, "cfg", None)
-    sig_t = odometry_sigma_t if odometry_sigma_t is not None else float(getattr(cfg, "odometry_sigma_t", 0.05))
-    sig_r = (odometry_sigma_r_deg if odometry_sigma_r_deg is not None
-             else float(getattr(cfg, "odometry_sigma_r_deg", 2.0)))
+    sig_t = odometry_sigma_t if odometry_sigma_t is not None else float(mapper.cfg.odometry_sigma_t)
+    sig_r = odometry_sigma_r_deg if odometry_sigma_r_deg is not None else float(mapper.cfg.odometry_sigma_r_deg)
     cov_t = covisibility_sigma_t if covisibility_sigma_t is not None else sig_t
     cov_r = covisibility_sigma_r_deg if covisibility_sigma_r_deg is not None else sig_r
     if min(sig_t, sig_r, cov_t, cov_r) <= 0:

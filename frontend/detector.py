@@ -346,9 +346,7 @@ class CachedDetector:
 
     def close(self) -> None:
         self.save()
-        close = getattr(self.inner, "close", None)
-        if callable(close):
-            close()
+        self.inner.close()
 
     def __repr__(self) -> str:
         return f"CachedDetector({self.inner!r}, cache_file={str(self.cache_file)!r}, entries={len(self)})"

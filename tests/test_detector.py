@@ -12,7 +12,7 @@ from frontend import detector as det_mod
 from frontend.detector import (CachedDetector, DetectorError, OnnxDetector, box_iou, boxes_from_input,
                                boxes_to_input, build_detector, cache_path_for, class_filter_of,
                                letterbox_params, nms_numpy, nms_per_class, resolve_model_path)
-from frontend.dynamic.base import Detection
+from frontend.dynamic.base import Detection, DetectorDefaults
 from slam.core.dynamic_config import ClassGroups, DetectorConfig
 
 from conftest import BONN, DATA, XYZ, model_file, real_sequence
@@ -230,7 +230,7 @@ def test_cache_path_depends_on_settings(tmp_path):
     assert "yolox_nano" in a.name and "0.300" in a.name
 
 
-class CountingDetector:
+class CountingDetector(DetectorDefaults):
     def __init__(self):
         self.calls = 0
 

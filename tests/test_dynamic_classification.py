@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from frontend.dynamic.base import DetectorDefaults
 from frontend.dynamic.oracle import precision_recall
 from slam.datasets import SyntheticSequence
 from slam.run.dynamic_eval import boundary_band, classify_synthetic, synthetic_config
@@ -73,7 +74,7 @@ def test_precision_recall_and_boundary_band():
     assert band[5, 10] and band[4, 10] and not band[10, 10] and not band[0, 0]
 
 
-class _DetectorThatSeesNobody:
+class _DetectorThatSeesNobody(DetectorDefaults):
     def detect(self, bgr, timestamp: float = 0.0) -> list:
         return []
 

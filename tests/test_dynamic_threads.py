@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from frontend.dynamic.base import DynamicContext
+from frontend.dynamic.base import DetectorDefaults, DynamicContext
 from frontend.dynamic.cpr import CprMethod
 from frontend.dynamic.oracle import synthetic_oracle
 from frontend.dynamic_filter import build_dynamic_filter
@@ -34,7 +34,7 @@ def scene():
     return seq, config, camera, frames
 
 
-class RecordingDetector:
+class RecordingDetector(DetectorDefaults):
     """The ground-truth boxes, remembering which frames were asked for."""
 
     def __init__(self, seq):

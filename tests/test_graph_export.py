@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from backend.graph_export import (GraphEdge, export_g2o, export_json, graph_edges_from_mapper, load_json,
                                   mapper_keyframes)
+from slam.core.config import BackendConfig
 from slam.core.geometry import invert
 
 
@@ -156,6 +157,7 @@ class _FakeMap:
 class _FakeMapper:
     def __init__(self, poses, covis):
         self.map = _FakeMap(poses, covis)
+        self.cfg = BackendConfig()
 
 
 def test_graph_edges_from_mapper_weights():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from frontend.dynamic import RevisedMask
-from frontend.dynamic.base import MethodOutput
+from frontend.dynamic.base import DetectorDefaults, MethodOutput
 from frontend.dynamic.keyframe_masks import KeyframeMaskLedger, MaskParts, compose_mask, still_region
 from frontend.dynamic.region_motion import RegionMotion
 from slam.run.run_artifacts import MASK_DIR, STILL_SUFFIX, RunArtifacts
@@ -114,7 +114,7 @@ def test_a_revision_rewrites_the_keyframes_mask_files(tmp_path):
     assert (cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED) == 255 * full).all() and not still_path.exists()
 
 
-class _FalsePersonOnTheWall:
+class _FalsePersonOnTheWall(DetectorDefaults):
     """A detector that sees a 'person' on static structure for a few frames (what YOLOX-Nano did on
     fr1/rpy's desk, frame 395, score 0.35) and nobody else: a box of fixed size around the image of a
     fixed world point (the structure moves in the image as the camera moves, and the box with it)."""

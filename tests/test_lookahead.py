@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from frontend.dynamic.base import DetectorDefaults
 from frontend.dynamic.oracle import synthetic_oracle
 from slam.runtime.lookahead import FrameLookahead
 from slam.runtime.system import System, UpcomingFrame
@@ -24,7 +25,7 @@ def people():
     return synthetic_sequence(FRAMES, movers="people")
 
 
-class SlowOracle:
+class SlowOracle(DetectorDefaults):
     """The ground-truth boxes, after a delay (the detector's thread finishes after the tracking)."""
 
     def __init__(self, seq, delay: float):

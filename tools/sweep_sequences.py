@@ -132,8 +132,9 @@ def seeded(config, seed: int):
 
     config.seed = seed
     for method in METHOD_NAMES:
-        if hasattr(getattr(config.dynamic, method), "seed"):
-            getattr(config.dynamic, method).seed = seed
+        section = getattr(config.dynamic, method)
+        if "seed" in type(section).model_fields:       # box_depth makes no random choice
+            section.seed = seed
     return config
 
 

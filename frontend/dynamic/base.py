@@ -42,9 +42,26 @@ class Detection:
 
 
 class Detector(Protocol):
-    """Anything that turns a BGR image into boxes (the ONNX models, a cache, a test double)."""
+    """Anything that turns a BGR image into boxes (the ONNX models, a cache, a test double). ``save``
+    persists what is worth keeping (a cache's entries) when a run ends; ``close`` also lets go of what
+    the detector holds."""
 
     def detect(self, bgr: np.ndarray, timestamp: float = 0.0) -> list[Detection]: ...
+
+    def save(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class DetectorDefaults:
+    """``save`` and ``close`` for a detector with nothing to persist or let go of (known boxes, test
+    doubles): inherit it and write ``detect``."""
+
+    def save(self) -> None:
+        """Nothing to persist."""
+
+    def close(self) -> None:
+        """Nothing held."""
 
 
 @dataclass

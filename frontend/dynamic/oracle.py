@@ -9,12 +9,12 @@ from typing import Iterable
 
 import numpy as np
 
-from frontend.dynamic.base import Detection
+from frontend.dynamic.base import Detection, DetectorDefaults
 
 PERSON = 0
 
 
-class OracleDetector:
+class OracleDetector(DetectorDefaults):
     """Boxes per timestamp: {round(t, 6): [(x0, y0, x1, y1, class_id), ...]}."""
 
     def __init__(self, boxes_by_time: dict[float, Iterable[tuple]]):

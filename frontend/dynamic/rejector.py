@@ -313,9 +313,8 @@ class DynamicRejector:
             if pool is not None:
                 pool.shutdown(wait=True)
         self._detect_thread = self._prepare_thread = None
-        save = getattr(self.detector, "save", None)
-        if callable(save):
-            save()
+        if self.detector is not None:
+            self.detector.save()
 
     def _dump(self, ctx: DynamicContext, outputs: dict[str, MethodOutput], fused: np.ndarray) -> None:
         self._dump_dir.mkdir(parents=True, exist_ok=True)
