@@ -275,7 +275,20 @@ class LocalWindowBackend(LoopCorrection):
         return [h for h in self._lm_obs[lm][-cap:] if h in self._obs_ends]
 
     def _adjust(self, window: set[int], iterations: Optional[int] = None, relative_tol: float = 1e-5) -> None:
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        """Bundle-adjust the keyframes of ``window`` and the landmarks they see, held by the keyframes
+        around it (fixed), and write the estimates back."""
+        window, fixed, landmarks, handles = self._window_problem(window)
+        graph, values, ordering = self._window_graph(window, fixed, landmarks, handles)
+        result = self._solve(graph, values, iterations or self.window.iterations, ordering, relative_tol)
+        for k in window:
+            self._poses.values[self._poses.slot[k]] = result.atPose3(X(k)).matrix()
+        if landmarks:
+            slots = np.fromiter((self._points.slot[lm] for lm in landmarks), np.int64, len(landmarks))
+            self._points.values[slots] = gtsam.utilities.extractPoint3(result).reshape(-1, 3)
+        self.last_window = (len(window), len(fixed), len(landmarks))
+
+    def _window_problem(self, window: set[int]) -> tuple[set[int], set[int], list[int], set[int]]:
+        """(the keyframes to adjust, the fixed keyframes that hold them, the landmarks, the factor handles)."""
         handles = {h for k in window for h in self._kf_obs[k] if h in self._obs_ends}
         landmarks = sorted({self._obs_ends[h][1] for h in handles})
         outside: dict[int, list[int]] = {}    # keyframe outside the window -> its observations of window landmarks
@@ -303,6 +316,13 @@ class LocalWindowBackend(LoopCorrection):
         elif not fixed:
             fixed.add(min(window))   # gauge: a window that touches nothing else keeps its oldest pose
             window = window - fixed
+        return window, fixed, landmarks, handles
+
+    def _window_graph(self, window: set[int], fixed: set[int], landmarks: list[int], handles: set[int]
+                      ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, gtsam.Ordering]:
+        """The factors of ``handles``, a tight prior on every fixed keyframe, the current estimates as the
+        starting point, and the elimination order."""
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         for h in sorted(handles):
             graph.add(self._live[h])
         noise = gtsam.noiseModel.Isotropic.Sigma(6, self.window.fixed_sigma)
@@ -320,13 +340,7 @@ class LocalWindowBackend(LoopCorrection):
             ordering.push_back(L(lm))
         for k in sorted(window | fixed):
             ordering.push_back(X(k))
-        result = self._solve(graph, values, iterations or self.window.iterations, ordering, relative_tol)
-        for k in window:
-            self._poses.values[self._poses.slot[k]] = result.atPose3(X(k)).matrix()
-        if landmarks:
-            slots = np.fromiter((self._points.slot[lm] for lm in landmarks), np.int64, len(landmarks))
-            self._points.values[slots] = gtsam.utilities.extractPoint3(result).reshape(-1, 3)
-        self.last_window = (len(window), len(fixed), len(landmarks))
+        return graph, values, ordering
 
     @staticmethod
     def _solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int,

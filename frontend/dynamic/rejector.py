@@ -140,6 +140,28 @@ class DynamicRejector:
 
     def process(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                 predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> np.ndarray:
+        ctx, prepared = self._context(frame, rgb, gray, depth, predicted_T_cw, last_T_cw)
+        outputs = self._run_methods(ctx, prepared)
+        fused = fuse([o.prob for o in outputs.values()], self._weights, self.cfg.fusion, len(frame))
+        with self.timer.measure("dynamic.standing_people"):
+            self._still_region = self._standing_people(ctx)
+        fused, prior_mask = self._regions_and_prior(fused, outputs, ctx)
+        self._last = (ctx, outputs)
+        self.last_outputs, self.last_fused, self.last_keypoints = outputs, fused, frame.uv_raw
+        motion_region = None if self._motion_region is None else _MOTION_REGION_PROB * self._motion_region
+        self._mask_parts = MaskParts(outputs, self._weights, self._motion_methods, self.cfg.fusion, ctx.gray.shape,
+                                     motion_region, prior_mask)
+        self._mask_parts.still_region = self._still_region
+        self._fused_mask = None
+        if self._dump_dir is not None:
+            self._dump(ctx, outputs, fused)
+        return fused
+
+    def _context(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
+                 predicted_T_cw: Optional[np.ndarray],
+                 last_T_cw: Optional[np.ndarray]) -> tuple[DynamicContext, Optional[Future]]:
+        """The frame's context (the one its threaded work began with, when it was begun) with its
+        detections, and the future of that threaded work (None when there is none)."""
         begun = self._take_begun(frame.timestamp, gray)
         ctx = DynamicContext(frame, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
         prepared = None
@@ -153,8 +175,11 @@ class DynamicRejector:
                 else:
                     ctx.detections = self.detector.detect(rgb, frame.timestamp)
                 ctx.detections = self._box_memory.update(ctx.detections)
-        # The methods without threaded work first, while the threaded ones (cpr) may still run; the
-        # methods are independent, so the order changes no output, and they are fused in config order.
+        return ctx, prepared
+
+    def _run_methods(self, ctx: DynamicContext, prepared: Optional[Future]) -> dict[str, MethodOutput]:
+        """Every method's output, in config order. The methods without threaded work run first, while the
+        threaded ones (cpr) may still run; the methods are independent, so the order changes no output."""
         outputs: dict[str, MethodOutput] = {}
         for method in sorted(self.methods, key=lambda m: m.prepares):
             if method.prepares and prepared is not None:
@@ -168,9 +193,13 @@ class DynamicRejector:
         outputs = {m.name: outputs[m.name] for m in self.methods}
         for name, out in outputs.items():
             self.stats.add(name, out.flagged)
-        fused = fuse([o.prob for o in outputs.values()], self._weights, self.cfg.fusion, len(frame))
-        with self.timer.measure("dynamic.standing_people"):
-            self._still_region = self._standing_people(ctx)
+        return outputs
+
+    def _regions_and_prior(self, fused: np.ndarray, outputs: dict[str, MethodOutput],
+                           ctx: DynamicContext) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """The fused probabilities raised by the detector-free motion regions and the person-box prior,
+        and the prior's pixel mask; counts the frame in ``stats``."""
+        frame = ctx.frame
         self._motion_region = self._confirmed_motion(outputs, frame, ctx)
         found_by_motion = 0
         if self._motion_region is not None:
@@ -186,16 +215,7 @@ class DynamicRejector:
             self.stats.add("standing_people", self.people_still)   # a column of dynamic.csv
         if self.cfg.motion_region_votes > 0 and {"cpr", "flow_epipolar"} <= set(outputs):
             self.stats.add("motion_regions", found_by_motion)      # features only the region rule flagged
-        self._last = (ctx, outputs)
-        self.last_outputs, self.last_fused, self.last_keypoints = outputs, fused, frame.uv_raw
-        motion_region = None if self._motion_region is None else _MOTION_REGION_PROB * self._motion_region
-        self._mask_parts = MaskParts(outputs, self._weights, self._motion_methods, self.cfg.fusion, ctx.gray.shape,
-                                     motion_region, prior_mask)
-        self._mask_parts.still_region = self._still_region
-        self._fused_mask = None
-        if self._dump_dir is not None:
-            self._dump(ctx, outputs, fused)
-        return fused
+        return fused, prior_mask
 
     @property
     def last_mask(self) -> Optional[np.ndarray]:
