@@ -170,6 +170,42 @@ def _even_subsample(starts: np.ndarray, cap: int) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
 
+def _intensity_correspondences(p: np.ndarray, intensity: np.ndarray, lab_s: np.ndarray, seg: np.ndarray, k: int,
+                               ref: Cloud, n_cand: int, nu: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eqs. 4-9: of each point's ``n_cand`` candidates, the one with the largest product of Student-t
+    weights of its distance and intensity residuals (a sub-cloud's scales cover all its candidates);
+    returns the chosen reference points and their weights (0 for a point without candidates)."""
+    dist, idx = ref.query(p, n_cand)
+    r_i = np.abs(intensity[:, None] - ref.intensity[idx])
+    ok = np.isfinite(dist)                 # projective: window cells without a sample
+    if ok.all():
+        rows, dv, iv = _Rows(seg * dist.shape[1]), dist.reshape(-1), r_i.reshape(-1)
+    else:                                  # scales over the existing candidates only
+        rows = _Rows(np.concatenate([[0], np.cumsum(np.bincount(lab_s, ok.sum(axis=1), k))]).astype(np.int64))
+        dv, iv = dist[ok], r_i[ok]
+    sg = rows.robust_scales(dv, _SCALE_FLOOR_GEOM)[lab_s, None]
+    si = rows.robust_scales(iv, _SCALE_FLOOR_INTENSITY)[lab_s, None]
+    w = t_weight(dist, sg, nu) * t_weight(r_i, si, nu)
+    w[~ok] = -1.0
+    best = np.argmax(w, axis=1)
+    pts = np.arange(len(p))
+    return ref.xyz[idx[pts, best]], np.maximum(w[pts, best], 0.0)
+
+
+def _nearest_correspondences(p: np.ndarray, lab_s: np.ndarray, seg: np.ndarray, k: int, ref: Cloud,
+                             nu: float) -> tuple[np.ndarray, np.ndarray]:
+    """Plain robust ICP: each point's nearest reference point under the geometric Student-t weight
+    (0 for a point without a candidate)."""
+    dist, idx = ref.query(p, 1)
+    dist, idx = dist[:, 0], idx[:, 0]
+    q = ref.xyz[idx]
+    ok = np.isfinite(dist)
+    if ok.all():
+        return q, t_weight(dist, _Rows(seg).robust_scales(dist, _SCALE_FLOOR_GEOM)[lab_s], nu)
+    scale = _Rows(_segments(lab_s[ok], k)).robust_scales(dist[ok], _SCALE_FLOOR_GEOM)
+    return q, np.where(ok, t_weight(np.where(ok, dist, 0.0), scale[lab_s], nu), 0.0)
+
+
 def sub_poses(src: np.ndarray, src_i: np.ndarray, labels: np.ndarray, k: int, ref: Cloud, init: np.ndarray,
               cfg: CprConfig) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pose of each of the ``k`` sub-clouds (current camera -> reference camera), Section 3.5.
@@ -184,7 +220,6 @@ def sub_poses(src: np.ndarray, src_i: np.ndarray, labels: np.ndarray, k: int, re
     lab, p0, i0 = labels[pick], src[pick], src_i[pick]
     poses = np.tile(init, (k, 1, 1))
     nu = cfg.student_nu
-    ref_xyz, ref_i = ref.xyz, ref.intensity
     n_cand = int(min(cfg.candidates, len(ref)))
     n_int = min(int(cfg.icp_intensity_iterations), int(cfg.icp_iterations))
     for intensity_stage, iters in ((True, n_int), (False, int(cfg.icp_iterations) - n_int)):
@@ -197,33 +232,9 @@ def sub_poses(src: np.ndarray, src_i: np.ndarray, labels: np.ndarray, k: int, re
             p = _apply(poses, lab_s, p0[ids])
             seg = _segments(lab_s, k)
             if intensity_stage and n_cand > 1:
-                dist, idx = ref.query(p, n_cand)
-                r_i = np.abs(i0[ids][:, None] - ref_i[idx])
-                ok = np.isfinite(dist)                 # projective: window cells without a sample
-                if ok.all():
-                    rows, dv, iv = _Rows(seg * dist.shape[1]), dist.reshape(-1), r_i.reshape(-1)
-                else:                                  # scales over the existing candidates only
-                    rows = _Rows(np.concatenate([[0], np.cumsum(np.bincount(lab_s, ok.sum(axis=1), k))]).astype(np.int64))
-                    dv, iv = dist[ok], r_i[ok]
-                # a sub-cloud's scale covers all its candidates
-                sg = rows.robust_scales(dv, _SCALE_FLOOR_GEOM)[lab_s, None]
-                si = rows.robust_scales(iv, _SCALE_FLOOR_INTENSITY)[lab_s, None]
-                w = t_weight(dist, sg, nu) * t_weight(r_i, si, nu)
-                w[~ok] = -1.0
-                best = np.argmax(w, axis=1)
-                pts = np.arange(len(p))
-                q = ref_xyz[idx[pts, best]]
-                wt = np.maximum(w[pts, best], 0.0)     # a point without candidates: weight 0
+                q, wt = _intensity_correspondences(p, i0[ids], lab_s, seg, k, ref, n_cand, nu)
             else:
-                dist, idx = ref.query(p, 1)
-                dist, idx = dist[:, 0], idx[:, 0]
-                q = ref_xyz[idx]
-                ok = np.isfinite(dist)
-                if ok.all():
-                    wt = t_weight(dist, _Rows(seg).robust_scales(dist, _SCALE_FLOOR_GEOM)[lab_s], nu)
-                else:
-                    scale = _Rows(_segments(lab_s[ok], k)).robust_scales(dist[ok], _SCALE_FLOOR_GEOM)
-                    wt = np.where(ok, t_weight(np.where(ok, dist, 0.0), scale[lab_s], nu), 0.0)
+                q, wt = _nearest_correspondences(p, lab_s, seg, k, ref, nu)
             delta = _kabsch(p, q, wt, seg, active)
             poses = delta @ poses
             moved = np.linalg.norm(delta[:, :3, 3], axis=1)
