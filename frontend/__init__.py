@@ -16,6 +16,9 @@ _PUBLIC = {
     "build_dynamic_filter": "frontend.dynamic_filter",
     "DynamicFilter": "frontend.dynamic",
     "StaticWorld": "frontend.dynamic",
+    "Detection": "frontend.dynamic.base",
+    "Detector": "frontend.dynamic.base",
+    "DetectorDefaults": "frontend.dynamic.base",
 }
 __all__ = sorted(_PUBLIC)
 

@@ -18,6 +18,7 @@ from typing import Optional
 
 from frontend.detector import build_detector
 from frontend.dynamic import DynamicFilter, StaticWorld
+from frontend.dynamic.base import Detector
 from frontend.dynamic.rejector import DynamicRejector
 from frontend.model_lookup import ModelNotFoundError, download_command, locate_model, missing_model_message
 from slam.core.camera import PinholeCamera
@@ -44,7 +45,7 @@ class DetectorModelMissingWarning(RuntimeWarning):
 
 
 def build_dynamic_filter(config, camera: PinholeCamera, timer: Optional[ModuleTimer] = None,
-                         sequence_name: str = "", detector=None) -> DynamicFilter:
+                         sequence_name: str = "", detector: Optional[Detector] = None) -> DynamicFilter:
     """The filter for ``config.dynamic``: the null filter, or the enabled methods and their fusion.
 
     When methods (or the box prior) need a detector, none is given, and no model file is found

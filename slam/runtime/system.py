@@ -24,6 +24,7 @@ from backend.place_recognition import Vocabulary, load_vocabulary
 from backend.pnp_verification import PnpParams
 from backend.relocalization import Relocalizer
 from frontend.dynamic import DynamicFilter, RevisedMask
+from frontend.dynamic.base import Detector
 from frontend.dynamic_filter import build_dynamic_filter
 from frontend.orb_extractor import OrbExtractor
 from frontend.static_refill import refill_static
@@ -47,9 +48,13 @@ def _graph_process(config: SlamConfig, camera: PinholeCamera) -> GraphProcess:
 
 class System:
     def __init__(self, config: SlamConfig, dynamic_filter: Optional[DynamicFilter] = None, sequence_name: str = "",
-                 detector=None, prior_map: Optional[SlamMap] = None, localization_only: bool = False,
+                 detector: Optional[Detector] = None, prior_map: Optional[SlamMap] = None,
+                 localization_only: bool = False,
                  vocabulary: Optional[Vocabulary] = None, prior_words: Optional[dict] = None):
-        """``prior_map`` with ``localization_only=True``: track against a saved map that stays fixed
+        """``detector``: boxes from elsewhere instead of the configured ONNX model, anything with
+        ``detect(bgr, timestamp) -> list[Detection]``, ``save()`` and ``close()`` (``frontend.Detector``;
+        inherit ``frontend.DetectorDefaults`` for the last two when there is nothing to keep).
+        ``prior_map`` with ``localization_only=True``: track against a saved map that stays fixed
         (no graph updates, keyframes, landmark creation or culling, no statistics written to it).
         ``vocabulary``: place-recognition words (default: ``loop.vocabulary`` or the shipped one);
         ``prior_words``: {keyframe id: BowVector} of the prior map, as saved with it."""
