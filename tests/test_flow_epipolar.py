@@ -308,3 +308,26 @@ def test_empty_frames_and_missing_detections():
     assert out.info["boxes"] == 0 and out.info["tracked"] > 0
     assert out.tracks.shape == (out.info["tracked"], 2) and out.track_moving.shape == (out.info["tracked"],)
     assert m.name == "flow_epipolar" and m.needs_detector
+
+
+def test_grid_propagation_keeps_a_frame_only_once_it_is_committed():
+    """GridPropagation (PPS Algorithm 2): ``update`` gives a frame's posteriors without touching the
+    history; ``commit`` adds its clamped posterior, and the next prior is the history's mean."""
+    from frontend.dynamic.grid_propagation import GridPropagation
+
+    grid = GridPropagation(FlowEpipolarConfig(grid=2, history=2, prob_clamp=0.05))
+    region = np.zeros((4, 4), bool)
+    region[:2, :2] = True                                   # the top-left cell is all dynamic
+    posterior, _, rows, cols = grid.update(region)
+    assert rows.tolist() == [0, 2, 4] and cols.tolist() == [0, 2, 4]
+    np.testing.assert_allclose(posterior, [[0.9, 0.1], [0.1, 0.1]])   # neutral prior: the likelihoods
+    assert len(grid.history) == 0 and grid.prior()[0, 0] == pytest.approx(0.5)
+    grid.update(region)                                     # a frame updated twice counts once
+    grid.commit()
+    grid.commit()                                           # nothing pending: no second entry
+    assert len(grid.history) == 1
+    np.testing.assert_allclose(grid.prior(), [[0.9, 0.1], [0.1, 0.1]])
+    for _ in range(30):                                     # a long static run: clamped at 0.05, not 0
+        grid.update(np.zeros((4, 4), bool))
+        grid.commit()
+    assert len(grid.history) == 2 and grid.prior().min() == pytest.approx(0.05)

@@ -162,3 +162,28 @@ def test_pyproject_lists_every_package_and_ships_the_presets():
     assert set(setuptools_cfg["packages"]) == in_tree | {"slam.presets", "backend.data"}   # + the data folders
     assert setuptools_cfg["package-dir"] == {"slam.presets": "configs"}
     assert setuptools_cfg["package-data"]["slam.presets"] == ["*.yaml"]
+
+
+def test_importing_a_package_imports_nothing_it_exports_until_asked():
+    """slam/core/lazy_exports.py: ``import slam, frontend, backend`` loads none of the modules behind
+    their public names (nor gtsam or OpenCV); the first read of a name imports its module and keeps the
+    value; a name the package does not export is an AttributeError naming it."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, slam, frontend, backend\n"
+        "loaded = sorted(m for m in sys.modules if m.split('.')[0] in ('slam', 'frontend', 'backend', 'gtsam', 'cv2'))\n"
+        "print(loaded)\n"
+        "system = slam.System\n"
+        "print('slam.runtime.system' in sys.modules, vars(slam)['System'] is system, 'System' in dir(slam))\n"
+        "try:\n"
+        "    slam.Sistem\n"
+        "except AttributeError as exc:\n"
+        "    print(exc)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO).stdout
+    loaded, cached, missing = out.splitlines()
+    assert loaded == "['backend', 'frontend', 'slam', 'slam.core', 'slam.core.lazy_exports']"
+    assert cached == "True True True"
+    assert missing == "module 'slam' has no attribute 'Sistem'"
