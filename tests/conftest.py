@@ -3,7 +3,7 @@
 Tiers (markers registered in pyproject.toml):
 - ``real``: needs ``../shared`` (real sequences or the ONNX detectors) beside the checkout;
 - ``slow``: takes more than a few seconds; ``pytest -m "not slow" -n 2`` is the everyday tier (< 2 min),
-  ``pytest -n 2 --dist loadgroup`` the whole suite (see ``pytest_collection_modifyitems``).
+  ``pytest -n 2 --dist loadgroup`` the whole suite (tests/_suite_hooks.py groups the slow tests).
 
 Missing real data: a user's clone without ``../shared`` skips those tests with a reason. In CI (the
 environment variable ``CI`` is set, as ``.ci/run`` runs) a missing data set or model is a *failure*
@@ -32,6 +32,10 @@ from slam.datasets import SyntheticSequence, write_tum_layout
 from slam.datasets.synthetic import look_rotation
 from slam.core.geometry import invert, make_pose, so3_exp, transform_points
 
+# The suite's hooks: measured figures printed at the end, slow tests grouped for xdist (tests/_suite_hooks.py;
+# pytest registers them as this conftest's own)
+from _suite_hooks import (ACCURACY_GROUP, pytest_collection_modifyitems, pytest_runtest_logreport,  # noqa: F401
+                          pytest_runtest_makereport, pytest_terminal_summary, report_figures)
 # ROS and RealSense bags of a generated sequence (the formats' encoding lives in tests/_bag_writers.py)
 from _bag_writers import (DEPTH_DELAY_S, DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC, RS_COLOUR, RS_DEPTH,  # noqa: F401
                           RS_DEPTH_DELAY_S, RS_UNITS_TOPIC, START_S, render_depth_camera, rs_extrinsic,
@@ -206,59 +210,6 @@ class AccuracyRuns:
 @pytest.fixture(scope="session")
 def accuracy_runs(tmp_path_factory) -> AccuracyRuns:
     return AccuracyRuns(tmp_path_factory.mktemp("accuracy"))
-
-
-# ------------------------------------------------------------------------------- printed figures
-_FIGURES: list[tuple[str, str]] = []   # reported in this process, not yet attached to a test report
-_PRINTED: list[tuple[str, str]] = []   # collected from the reports (under xdist: from every worker)
-
-
-def report_figures(title: str, text: str) -> None:
-    """Measured figures that the README quotes: printed at the end of every pytest run (no ``-s``
-    needed), so each README number named after a test is reproduced by running that test."""
-    _FIGURES.append((title, text))
-
-
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_makereport(item, call):
-    """The figures a test (or its fixtures) reported ride on its report, which xdist sends from the
-    worker to the main process; a new list, because the phases' reports share the item's."""
-    outcome = yield
-    report = outcome.get_result()
-    if _FIGURES:
-        report.user_properties = list(report.user_properties) + [("figures", figure) for figure in _FIGURES]
-        _FIGURES.clear()
-
-
-def pytest_runtest_logreport(report) -> None:
-    for key, value in report.user_properties:
-        if key == "figures" and tuple(value) not in _PRINTED:   # a module fixture made on both workers: once
-            _PRINTED.append(tuple(value))
-
-
-# The whole suite runs on both cores (``pytest -n 2 --dist loadgroup``, the README's command): xdist hands
-# out a group's tests to one worker together. A slow test is grouped with its module, so the module's
-# expensive fixtures (a hard scene's run, the drift room's walks) are made once; the tests that read the
-# accuracy runs (tools/accuracy.py's 13 dynslam runs, a session fixture) share the group ACCURACY_GROUP,
-# so those runs happen once. Fast tests stay ungrouped: they spread one by one.
-ACCURACY_GROUP = "accuracy_runs"
-
-
-@pytest.hookimpl(tryfirst=True)    # before xdist reads the groups
-def pytest_collection_modifyitems(config, items) -> None:
-    for item in items:
-        if item.get_closest_marker("slow") is not None and item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
-
-
-def pytest_terminal_summary(terminalreporter) -> None:
-    if not _PRINTED:
-        return
-    terminalreporter.section("measured figures (quoted in the README)")
-    for title, text in _PRINTED:
-        terminalreporter.write_line(f"{title}:")
-        for line in text.splitlines():
-            terminalreporter.write_line(f"    {line}")
 
 
 # ------------------------------------------------------------------ a room walked twice, with drift

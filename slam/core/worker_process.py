@@ -1,11 +1,9 @@
-"""Starting and stopping the run's worker processes (today one: the mapping back end's solver).
+"""Starting and stopping the run's worker process (the mapping back end's solver, slam/runtime/graph_process.py).
 
 Work that holds the GIL for long (GTSAM's solves) runs in a process of its own, so the tracking thread is
-not slowed by it. (Measured and not kept, 2026-11-27: cpr's registration in such a worker gave the same
-bits and no speed - Bonn crowd-480 whole run 95.1 vs 94.3 ms/frame, means of 3 alternating runs each -
-because a run is bound by its CPU on 2 cores, ~140 ms per frame, not by the GIL.) Every worker is forked from one forkserver: not from the main
-process, whose detector and OpenCV threads a fork would copy mid-state; and the server has the workers'
-worker's module (its target's) imported once, so a worker starts in milliseconds.
+not slowed by it (docs/design.md, "Runtime", has what else was measured there). A worker is forked from a
+forkserver, not from the main process, whose detector and OpenCV threads a fork would copy mid-state; the
+server has the worker target's module imported once, so a worker starts in milliseconds.
 
 A worker ignores SIGINT (Ctrl-C is the main process's to handle: it still finishes the run and writes
 complete files), stops when its pipe closes, and is a daemon, so no process outlives the run.
@@ -17,6 +15,7 @@ import signal
 import sys
 from contextlib import contextmanager
 from typing import Callable
+
 
 @contextmanager
 def _main_module_hidden():
