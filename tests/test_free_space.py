@@ -129,3 +129,17 @@ def test_later_frames_grow_a_keyframes_evidence_and_hand_it_back_once_per_lag():
     assert key == "kf" and moving[110:390, 210:350].all() and known.mean() > 0.95
     assert not moving[:, 420:].any()
     assert fs._pending == []                                      # done after its last lag
+
+
+def test_the_moving_evidence_grows_over_the_moving_surface_not_onto_the_wall_beside_it():
+    """The min filter leaves a blind band at the edges of a surface that moved in; the evidence grows over
+    that band along the surface (depth within the test's margin), not onto the wall around it."""
+    fs = check()
+    fs.remember(0.0, wall(), pose_cw(0.0))
+    fs.remember(0.5, wall(), pose_cw(0.0))
+    box = (200, 100, 360, 400)
+    moving, known, _ = fs.keyframe(None, 1.0, wall(box), pose_cw(0.0))
+    assert moving[box[1]:box[3], box[0]:box[2]].all()               # the whole box, its edges included
+    assert known[:, 370:400].all() and not moving[:, 368:].any()    # the wall right beside it: static
+    assert not moving[:, :192].any() and not moving[:92].any()
+
