@@ -118,3 +118,16 @@ def test_scene_evaluation_scores_the_trajectory_a_run_writes():
     assert result.ate_rmse == ate(gt_t, gt_poses, stamps[tracked], poses[tracked]).rmse
     before = seen["before_close"]
     assert not np.array_equal(before[1][before[2]], poses[tracked])   # the final adjustment moved them
+
+
+def test_a_scene_evaluates_with_dynamic_handling_off_too():
+    """``tools/hard_scenes.py --preset static`` (the baseline a hard scene is compared with) once ended in
+    an AttributeError: the evaluation read keypoints the null filter did not keep. With every feature
+    static, nothing is flagged: recall 0 per feature and per mask pixel, and the trajectory is scored."""
+    from slam.run.dynamic_eval import evaluate_synthetic
+
+    sequence = SyntheticSequence(n_frames=12, movers="people", seed=0)
+    result = evaluate_synthetic(sequence, synthetic_config(sequence, preset="static"))
+    assert result.classification.recall["fused"] == 0.0 and result.classification.dynamic_features > 0
+    assert result.keyframe_masks["fused"].recall == 0.0 and np.isfinite(result.ate_rmse)
+    assert list(result.classification.recall) == ["fused"]         # no method ran

@@ -88,6 +88,12 @@ class DynamicFilter(Protocol):
         """Persist what is worth keeping (e.g. the detection cache)."""
         ...
 
+    # The last frame's keypoints (Nx2, raw pixels), fused probabilities (N) and per-method outputs
+    # (``MethodOutput`` by method name; empty for the null filter), for diagnostics and evaluation.
+    last_keypoints: np.ndarray
+    last_fused: np.ndarray
+    last_outputs: dict
+
 
 class StaticWorld:
     """The null filter: every feature is static."""
@@ -98,6 +104,11 @@ class StaticWorld:
     last_still_people = None
     revised_masks: Sequence[RevisedMask] = ()
 
+    def __init__(self) -> None:
+        self.last_keypoints = np.zeros((0, 2))
+        self.last_fused = np.zeros(0)
+        self.last_outputs: dict = {}
+
     def begin_frame(self, rgb, gray, depth, timestamp, predicted_T_cw, last_T_cw) -> None:
         return None
 
@@ -105,7 +116,8 @@ class StaticWorld:
         return None
 
     def process(self, frame, rgb, gray, depth, predicted_T_cw, last_T_cw) -> np.ndarray:
-        return np.zeros(len(frame))
+        self.last_keypoints, self.last_fused = frame.uv_raw, np.zeros(len(frame))
+        return self.last_fused
 
     def end_frame(self, T_cw, is_keyframe) -> None:
         return None
