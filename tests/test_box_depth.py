@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from frontend.dynamic.base import Detection, DynamicContext
 from frontend.dynamic.box_depth import (BoxDepthMethod, eq8_filter, flood_fill, match_descriptors, seed_points,
@@ -299,3 +300,27 @@ def test_protocol_attributes():
     m = BoxDepthMethod(BoxDepthConfig(), ClassGroups())
     assert m.name == "box_depth" and m.needs_detector is True
     assert m.end_frame(None, None, None, False) is None
+
+
+def test_a_monitor_over_the_middle_of_a_persons_box_is_not_taken_for_the_person():
+    """The paper's first seed is the box's centre; with a monitor in front of a standing person it lands on
+    the monitor, whose fill spans the box's height too (composited fr1/rpy walk_stand). The person's depth
+    layer is the one that stays inside the box (the monitor goes on beyond it): the fill starts there."""
+    from frontend.dynamic.box_depth_segmentation import person_layer, segment_box
+
+    depth = np.full((480, 640), 4.0, np.float32)          # the wall
+    depth[100:400, 270:360] = 2.0                          # the person
+    depth[150:420, 310:500] = 1.0                          # a monitor in front of their right side, wider than them
+    box = (262, 92, 368, 408)                              # the detector's box around the person
+    x0, y0, x1, y1 = box
+    assert person_layer(box, depth) == pytest.approx(2.0, abs=0.05)
+    paper, _ = segment_box(depth[y0:y1, x0:x1], BoxDepthConfig())
+    seg, accepted = segment_box(depth[y0:y1, x0:x1], BoxDepthConfig(), person_layer(box, depth))
+    assert np.median(depth[y0:y1, x0:x1][paper]) == pytest.approx(1.0)     # the paper's seeds: the monitor
+    assert accepted >= 0 and np.all(depth[y0:y1, x0:x1][seg] == 2.0) and seg.sum() > 0.9 * (
+        (depth[y0:y1, x0:x1] == 2.0).sum())
+    # Nothing in front of the middle: the paper's seeds, unchanged.
+    clear = np.full((480, 640), 4.0, np.float32)
+    clear[100:400, 270:360] = 2.0
+    plain, k = segment_box(clear[y0:y1, x0:x1], BoxDepthConfig(), person_layer(box, clear))
+    assert k == 0 and np.array_equal(plain, segment_box(clear[y0:y1, x0:x1], BoxDepthConfig())[0])

@@ -145,6 +145,9 @@ class BoxDepthConfig(ConfigSection):
     """Probability given to effective (reused) dynamic features."""
     invalid_fill_px: int = Field(2, ge=0)
     """Invalid-depth pixels this close to a segment join it."""
+    seed_past_occluder: bool = True
+    """When the box's centre lies on something in front of the person (a monitor), seed the fill on the
+    person's depth layer first (frontend/dynamic/box_depth.py); False: the paper's five seeds only."""
 
 
 class FlowEpipolarConfig(ConfigSection):
