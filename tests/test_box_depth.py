@@ -314,6 +314,7 @@ def test_a_monitor_over_the_middle_of_a_persons_box_is_not_taken_for_the_person(
     box = (262, 92, 368, 408)                              # the detector's box around the person
     x0, y0, x1, y1 = box
     assert person_layer(box, depth) == pytest.approx(2.0, abs=0.05)
+    assert person_layer((300, 200, 300, 260), depth) is None                 # an empty box
     paper, _ = segment_box(depth[y0:y1, x0:x1], BoxDepthConfig())
     seg, accepted = segment_box(depth[y0:y1, x0:x1], BoxDepthConfig(), person_layer(box, depth))
     assert np.median(depth[y0:y1, x0:x1][paper]) == pytest.approx(1.0)     # the paper's seeds: the monitor

@@ -115,6 +115,8 @@ def person_layer(box: tuple[int, int, int, int], depth: np.ndarray) -> Optional[
     ``two_walk`` and 23 / 24 of ``stand_walk``; the box's middle (where the paper's first seed lies) in 25,
     17 and 12."""
     x0, y0, x1, y1 = box
+    if x1 <= x0 or y1 <= y0:
+        return None
     inside = depth[y0:y1:_LAYER_PIXEL_STEP, x0:x1:_LAYER_PIXEL_STEP].astype(float)
     inside = inside[inside > 0]
     ring = _ring_depths(box, depth)
