@@ -55,10 +55,10 @@ Choices where the paper is vague (all checked on the Bonn crowd sequence):
   depth layer -- the peak of the box's depth histogram that lies most inside the box, since a box bounds
   the person while what stands in front or behind goes on beyond it (``person_layer``) -- the layer's
   pixel nearest the centre is tried first; the paper's five seeds follow (``seed_past_occluder``; False
-  gives the paper's seeds alone). Nothing changes where the
-  centre is on the person (every generated hard scene: the same bits). On the fr1/rpy composites ATE
-  went from 1.21x to 1.12x the untouched frames (``walk_stand``), 1.23x -> 1.11x (``stand_walk``), 1.20x
-  -> 1.06x (``close_pass``); docs/dynamic.md has the table.
+  gives the paper's seeds alone). Nothing changes where the centre is on the person (every generated
+  hard scene: the same bits). On the fr1/rpy composites ATE went from 1.21x to 1.12x the untouched frames
+  (``walk_stand``), 1.23x -> 1.11x (``stand_walk``), 1.20x -> 1.06x (``close_pass``); docs/dynamic.md has
+  the table.
 * **Composite values (Eqs. 14-15).** The printed ``G + G_ave / 2`` is read as the mean of the pixel and
   its 8-neighbourhood average, ``(G + G_ave) / 2``; both composites are taken in the current frame,
   as the paper states. Depth averages skip invalid neighbours; an invalid centre fails the test.

@@ -112,16 +112,15 @@ def person_layer(box: tuple[int, int, int, int], depth: np.ndarray) -> Optional[
 
     Sampled on the fr1/rpy composites (ground-truth boxes 8 px wider), the layer lay within 0.3 m of the
     person's depth in 49 of 56 boxes of ``walk_stand`` (a person behind the monitor), 20 / 25 of
-    ``two_walk`` and 23 / 24 of ``stand_walk``; the box's middle (where the paper's first seed lies) in 25,
-    17 and 12."""
+    ``two_walk`` and 23 / 24 of ``stand_walk``; the median of the box's middle third in 25, 17 and 12."""
     x0, y0, x1, y1 = box
     if x1 <= x0 or y1 <= y0:
         return None
     inside = depth[y0:y1:_LAYER_PIXEL_STEP, x0:x1:_LAYER_PIXEL_STEP].astype(float)
     inside = inside[inside > 0]
-    ring = _ring_depths(box, depth)
     if len(inside) < 20:
         return None
+    ring = _ring_depths(box, depth)
     hist, edges = np.histogram(inside, np.arange(_LAYER_BIN_M * np.floor(inside.min() / _LAYER_BIN_M) - _LAYER_BIN_M,
                                                  inside.max() + 2 * _LAYER_BIN_M, _LAYER_BIN_M))
     smooth = np.convolve(hist, np.ones(3) / 3, mode="same")
