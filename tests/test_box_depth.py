@@ -325,3 +325,12 @@ def test_a_monitor_over_the_middle_of_a_persons_box_is_not_taken_for_the_person(
     clear[100:400, 270:360] = 2.0
     plain, k = segment_box(clear[y0:y1, x0:x1], BoxDepthConfig(), person_layer(box, clear))
     assert k == 0 and np.array_equal(plain, segment_box(clear[y0:y1, x0:x1], BoxDepthConfig())[0])
+
+
+def test_the_box_depth_preset_keeps_the_papers_five_seeds():
+    """`-c dynamic_box_depth` is the method as its paper describes it; the default seeds past an occluder."""
+    from slam.core.config import SlamConfig, apply_yaml, resolve_config_path
+
+    assert SlamConfig().dynamic.box_depth.seed_past_occluder
+    preset = apply_yaml(SlamConfig(), resolve_config_path("dynamic_box_depth"))
+    assert preset.dynamic.box_depth.seed_past_occluder is False and preset.dynamic.methods == ["box_depth"]
