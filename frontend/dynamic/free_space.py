@@ -178,7 +178,7 @@ class FreeSpaceCheck:
         nearest = np.full(len(p), _FAR, np.float32)
         seen[inside] = ref.depth[row[inside], col[inside]]
         nearest[inside] = ref.nearest[row[inside], col[inside]]
-        margin = self.margin_m + 3.0 * _NOISE_COEFF * seen.astype(float) ** 2
+        margin = self._margin(seen.astype(float))
         # Behind the other frame's surface: hidden from it, no evidence. In front of the nearest surface
         # near where it lands: that space was empty then.
         known = inside & (seen < _FAR) & (p[:, 2] <= seen + margin)
@@ -206,11 +206,15 @@ class FreeSpaceCheck:
             return cv2.resize(cells, full, interpolation=cv2.INTER_NEAREST).astype(bool)
         return Evidence(up(moving), up(known), up(region))
 
+    def _margin(self, z: np.ndarray) -> np.ndarray:
+        """How far (m) a surface at depth ``z`` may lie from another before it counts: ``margin_m`` + 3 sigma_z."""
+        return self.margin_m + 3.0 * _NOISE_COEFF * z ** 2
+
     def _grow_along_surfaces(self, moving: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """``moving`` (grid bool) grown by ``_GROW_CELLS`` cells, each step only into a neighbour whose depth
         is within the test's margin of the moving cell's: the band the min filter leaves blind lies on the
         surface that moved, not on the wall or desk beside it."""
-        tolerance = self.margin_m + 3.0 * _NOISE_COEFF * np.nan_to_num(depth, nan=0.0) ** 2
+        tolerance = self._margin(np.nan_to_num(depth, nan=0.0))
         grown = moving.copy()
         h, w = grown.shape
         padded_depth = np.pad(depth, 1, constant_values=np.nan)
