@@ -204,3 +204,38 @@ def test_the_runs_end_revisions_are_written_too(tmp_path):
     artifacts.finish(system)
     assert not cv2.imread(str(tmp_path / MASK_DIR / f"{3:06d}.png"), cv2.IMREAD_UNCHANGED).any()
     assert cv2.imread(str(tmp_path / MASK_DIR / f"{3:06d}{STILL_SUFFIX}.png"), cv2.IMREAD_UNCHANGED).any()
+
+
+def test_the_desk_and_wall_in_a_persons_box_leave_the_mask_and_the_person_stays():
+    """box_depth's fill runs on over a desk that touches a person in depth (composited fr1/rpy, people behind
+    the desk: most false pixels of the masks lay in a box, far in depth from the person): what lies more than
+    a body's reach from the box's person layer keeps only the motion-measuring methods' evidence."""
+    from frontend.dynamic.keyframe_masks import off_body_region
+
+    shape = (480, 640)
+    depth = np.full(shape, 3.5, np.float32)                 # the wall
+    depth[100:400, 270:360] = 2.0                           # the person
+    depth[330:480, :] = np.linspace(1.25, 0.8, 150, dtype=np.float32)[:, None]   # a desk in front of their legs
+    box = (262, 92, 368, 408)
+    walker = (340, 150, 410, 330)                           # a walker nearer, partly in the person's box
+    depth[150:330, 340:410] = np.linspace(1.1, 1.3, 70, dtype=np.float32)[None, :]
+    x0, y0, x1, y1 = box
+    leaky = np.zeros(shape, np.float32)
+    leaky[y0:y1, x0:x1] = 1.0                               # a segmentation that filled the whole box
+    leaky[150:330, 340:410] = 1.0
+    motion = np.zeros(shape, np.float32)
+    motion[350:380, 280:300] = 1.0                          # a motion method saw the desk move there
+    outputs = {"box_depth": MethodOutput(np.zeros(0), leaky), "cpr": MethodOutput(np.zeros(0), motion)}
+    parts = MaskParts(outputs, [1.0, 1.0], [1], "max", shape, None, None, [box, walker], depth)
+    mask, still = compose_mask(parts)
+    person = depth == 2.0
+    walker_px = np.zeros(shape, bool)
+    walker_px[150:330, 340:410] = True
+    assert (mask[person] >= 0.5).all() and (mask[walker_px] >= 0.5).all()      # both people stay
+    desk_or_wall = np.zeros(shape, bool)
+    desk_or_wall[y0:y1, x0:x1] = ~person[y0:y1, x0:x1] & ~walker_px[y0:y1, x0:x1]
+    desk_or_wall[350:380, 280:300] = False                  # ... except where motion was seen
+    assert not (mask[desk_or_wall] >= 0.5).any() and still[desk_or_wall].all()
+    assert (mask[350:380, 280:300] >= 0.5).all()
+    # A box without enough depth for a layer, or no box: nothing is cut.
+    assert off_body_region([box], np.zeros(shape, np.float32)) is None and off_body_region([], depth) is None

@@ -12,6 +12,15 @@ keyframes of a scene whose person stands were masked on the whole person (genera
 precision 0.46, every false alarm on the standing person in the three keyframes before the window ended).
 Dense maps leave standing and moving people out alike, so a revision moves pixels between
 ``masks/<index>.png`` and ``masks/<index>_still.png`` and changes no map.
+
+**Off the body.** box_depth's fill follows depth continuity, so a desk or floor that touches a person in
+depth is filled too, and depth_sdf's fit spans the box: on people composited into fr1/rpy, where they stand
+behind the desk, most false pixels of the masks lay in a person's box but far in depth from the person.
+A pixel of a person's box more than ``_BODY_REACH_M`` in depth from that box's person layer
+(``box_depth_segmentation.person_layer``, the box's most contained depth peak), and from the layer of every
+other box that holds it, is not that person: there the masks count only the motion-measuring methods, as
+for a person standing still, and what the fusion flagged goes to ``_still`` (dense maps unchanged).
+Tracking is unchanged (it keeps the methods' own per-feature probabilities).
 """
 from __future__ import annotations
 
@@ -22,11 +31,15 @@ import numpy as np
 
 from frontend.dynamic import RevisedMask
 from frontend.dynamic.base import MethodOutput
+from frontend.dynamic.box_depth_segmentation import person_layer
 from frontend.dynamic.free_space import Evidence
 from frontend.dynamic.fusion import fuse
 
 Box = tuple[int, int, int, int]          # x0, y0, x1, y1 whole pixels
 _MOVED_REGION_PROB = 0.9                 # a region the free-space test saw move, as region_motion's regions
+_BODY_REACH_M = 0.7
+"""How far in depth a person reaches from the middle of their body (their layer): an arm stretched
+towards the camera (~0.6 m) plus half a torso. Past it a pixel of their box is something else."""
 
 
 class MaskParts:
@@ -36,7 +49,7 @@ class MaskParts:
 
     def __init__(self, outputs: dict[str, MethodOutput], weights: list[float], motion_methods: list[int],
                  fusion: str, shape: tuple[int, int], motion_region: Optional[np.ndarray],
-                 prior: Optional[np.ndarray]):
+                 prior: Optional[np.ndarray], boxes: Sequence[Box] = (), depth: Optional[np.ndarray] = None):
         self._outputs = outputs
         self._weights = weights
         self._motion_methods = motion_methods     # indices of the methods that measure motion
@@ -51,6 +64,8 @@ class MaskParts:
         self.still_region: Optional[np.ndarray] = None
         self._fused: Optional[tuple[Optional[np.ndarray]]] = None
         self._motion: Optional[tuple[Optional[np.ndarray]]] = None
+        self._boxes, self._depth = list(boxes), depth      # the person boxes and the frame's depth (off_body)
+        self._off_body: Optional[tuple[Optional[np.ndarray]]] = None
 
     @property
     def fused(self) -> Optional[np.ndarray]:
@@ -69,10 +84,17 @@ class MaskParts:
                                              self.shape),)
         return self._motion[0]
 
+    @property
+    def off_body(self) -> Optional[np.ndarray]:
+        """HxW bool: the pixels of person boxes that lie off every holding box's body (None: no such pixel)."""
+        if self._off_body is None:
+            self._off_body = (None if self._depth is None else off_body_region(self._boxes, self._depth),)
+        return self._off_body[0]
+
     def keep(self) -> "MaskParts":
-        """Compute both fused masks now and let go of the methods' outputs (a keyframe's record)."""
-        _ = self.fused, self.motion
-        self._outputs = {}
+        """Compute the masks now and let go of the methods' outputs and the depth (a keyframe's record)."""
+        _ = self.fused, self.motion, self.off_body
+        self._outputs, self._depth = {}, None
         return self
 
 
@@ -105,15 +127,35 @@ def still_region(shape: tuple[int, int], boxes: list[Box], still) -> Optional[np
     return region
 
 
+def off_body_region(boxes: Sequence[Box], depth: np.ndarray) -> Optional[np.ndarray]:
+    """HxW bool: pixels with depth inside a person box that lie more than ``_BODY_REACH_M`` from the person
+    layer of every box holding them; a box without a layer (too little depth) counts as all body. None when
+    no pixel is off the body."""
+    if not boxes:
+        return None
+    near = np.full(depth.shape, np.inf, np.float32)      # per pixel: the distance to the nearest holding layer
+    for box in boxes:
+        x0, y0, x1, y1 = box
+        crop = depth[y0:y1, x0:x1]
+        layer = person_layer(box, depth)
+        gap = np.zeros(crop.shape, np.float32) if layer is None else np.abs(crop - np.float32(layer))
+        np.minimum(near[y0:y1, x0:x1], gap, out=near[y0:y1, x0:x1])
+    off = np.isfinite(near) & (near > _BODY_REACH_M) & (depth > 0)
+    return off if off.any() else None
+
+
 def compose_mask(parts: MaskParts) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
     """(mask of moving surfaces, pixels never to be mapped though not moving) for a frame whose standing
-    people cover ``parts.still_region``: there only the motion-measuring methods count, and what the fusion would have
-    flagged of them goes to the second mask. The free-space test (``parts.free_space``) adds the regions it
+    people cover ``parts.still_region``: there, and off every person's body (``parts.off_body``), only the
+    motion-measuring methods count, and what the fusion would have flagged of them goes to the second mask. The free-space test (``parts.free_space``) adds the regions it
     saw move, and flagged pixels it finds consistent with every frame that could tell go to the second
     mask too. Either may be None."""
     mask = None if parts.fused is None else parts.fused.copy()
     still_people = None
     region = parts.still_region
+    off_body = parts.off_body
+    if region is not None or off_body is not None:
+        region = off_body if region is None else (region if off_body is None else region | off_body)
     if mask is not None and region is not None:
         still_people = (mask >= 0.5) & region
         mask[region] = 0.0 if parts.motion is None else parts.motion[region]
