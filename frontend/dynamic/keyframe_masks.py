@@ -147,15 +147,13 @@ def off_body_region(boxes: Sequence[Box], depth: np.ndarray) -> Optional[np.ndar
 def compose_mask(parts: MaskParts) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
     """(mask of moving surfaces, pixels never to be mapped though not moving) for a frame whose standing
     people cover ``parts.still_region``: there, and off every person's body (``parts.off_body``), only the
-    motion-measuring methods count, and what the fusion would have flagged of them goes to the second mask. The free-space test (``parts.free_space``) adds the regions it
-    saw move, and flagged pixels it finds consistent with every frame that could tell go to the second
-    mask too. Either may be None."""
+    motion-measuring methods count, and what the fusion would have flagged of them goes to the second mask.
+    The free-space test (``parts.free_space``) adds the regions it saw move, and flagged pixels it finds
+    consistent with every frame that could tell go to the second mask too. Either may be None."""
     mask = None if parts.fused is None else parts.fused.copy()
     still_people = None
-    region = parts.still_region
-    off_body = parts.off_body
-    if region is not None or off_body is not None:
-        region = off_body if region is None else (region if off_body is None else region | off_body)
+    regions = [r for r in (parts.still_region, parts.off_body) if r is not None]
+    region = np.logical_or.reduce(regions) if regions else None
     if mask is not None and region is not None:
         still_people = (mask >= 0.5) & region
         mask[region] = 0.0 if parts.motion is None else parts.motion[region]
