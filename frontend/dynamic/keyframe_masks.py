@@ -20,7 +20,10 @@ A pixel of a person's box more than ``_BODY_REACH_M`` in depth from that box's p
 (``box_depth_segmentation.person_layer``, the box's most contained depth peak), and from the layer of every
 other box that holds it, is not that person: there the masks count only the motion-measuring methods, as
 for a person standing still, and what the fusion flagged goes to ``_still`` (dense maps unchanged).
-Tracking is unchanged (it keeps the methods' own per-feature probabilities).
+Tracking keeps the methods' own per-feature probabilities; only a frame short of static features refills
+from the mask (``frontend/static_refill.py``), and with the default box prior (0.3, above refill's 0.25
+bound) not there either, so a default run's trajectory is unchanged; the single-method presets, without
+the prior, may refill on those pixels.
 """
 from __future__ import annotations
 
