@@ -56,10 +56,12 @@ class BoxMemory:
         self.classes = classes
         self.width, self.height = width, height
         self._held: list[_HeldBox] = []
+        self.carried: list[Detection] = []     # the held boxes the last ``update`` added
 
     def update(self, detections: list[Detection]) -> list[Detection]:
         """This frame's detections plus the held boxes no detection continued."""
         if self.hold_frames <= 0:
+            self.carried = []
             return detections
         tracked = [d for d in detections if d.class_id in self.classes]
         new = np.array([[d.x0, d.y0, d.x1, d.y1] for d in tracked], float).reshape(-1, 4)
@@ -79,6 +81,7 @@ class BoxMemory:
             next_held.append(_HeldBox(box.seen, box.velocity, box.class_id, box.score, box.missed + 1))
             carried.append(Detection(*map(float, clipped), box.class_id, box.score))
         self._held = next_held
+        self.carried = carried
         return list(detections) + carried
 
     def _match(self, new: np.ndarray, classes: list[int]) -> dict[int, _HeldBox]:

@@ -40,6 +40,7 @@ from frontend.dynamic.fusion import fuse
 
 Box = tuple[int, int, int, int]          # x0, y0, x1, y1 whole pixels
 _MOVED_REGION_PROB = 0.9                 # a region the free-space test saw move, as region_motion's regions
+_VACATED_COVER = 0.7                     # a fresh box this much inside a held one: the person found again
 _BODY_REACH_M = 0.7
 """How far in depth a person reaches from the middle of their body (their layer): an arm stretched
 towards the camera (~0.6 m) plus half a torso. Past it a pixel of their box is something else."""
@@ -65,6 +66,8 @@ class MaskParts:
         self.free_space: Optional[Evidence] = None
         # HxW bool: the boxes of the people standing still, as last known (None: nobody)
         self.still_region: Optional[np.ndarray] = None
+        # HxW bool: held boxes the person has left for a fresh box inside them (None: none; vacated_region)
+        self.vacated: Optional[np.ndarray] = None
         self._fused: Optional[tuple[Optional[np.ndarray]]] = None
         self._motion: Optional[tuple[Optional[np.ndarray]]] = None
         self._boxes, self._depth = list(boxes), depth      # the person boxes and the frame's depth (off_body)
@@ -130,6 +133,23 @@ def still_region(shape: tuple[int, int], boxes: list[Box], still) -> Optional[np
     return region
 
 
+def vacated_region(shape: tuple[int, int], fresh: Sequence[Box], held: Sequence[Box]) -> Optional[np.ndarray]:
+    """HxW bool: each held box (the detector's memory of a box it did not see again) that holds at least
+    ``_VACATED_COVER`` of a fresh box, less every fresh box: the person was found again there, in a box the
+    memory did not match (a person half hidden as the camera turns keeps a box inside their last one, whose
+    IoU is small), so the rest of the held box holds nobody. None when there is no such box."""
+    region = np.zeros(shape, bool)
+    for hx0, hy0, hx1, hy1 in held:
+        for fx0, fy0, fx1, fy1 in fresh:
+            inter = max(0, min(hx1, fx1) - max(hx0, fx0)) * max(0, min(hy1, fy1) - max(hy0, fy0))
+            if inter >= _VACATED_COVER * max((fx1 - fx0) * (fy1 - fy0), 1):
+                region[hy0:hy1, hx0:hx1] = True
+                break
+    for fx0, fy0, fx1, fy1 in fresh:
+        region[fy0:fy1, fx0:fx1] = False
+    return region if region.any() else None
+
+
 def off_body_region(boxes: Sequence[Box], depth: np.ndarray) -> Optional[np.ndarray]:
     """HxW bool: pixels with depth inside a person box that lie more than ``_BODY_REACH_M`` from the person
     layer of every box holding them; a box without a layer (too little depth) counts as all body. None when
@@ -155,7 +175,7 @@ def compose_mask(parts: MaskParts) -> tuple[Optional[np.ndarray], Optional[np.nd
     consistent with every frame that could tell go to the second mask too. Either may be None."""
     mask = None if parts.fused is None else parts.fused.copy()
     still_people = None
-    regions = [r for r in (parts.still_region, parts.off_body) if r is not None]
+    regions = [r for r in (parts.still_region, parts.off_body, parts.vacated) if r is not None]
     region = np.logical_or.reduce(regions) if regions else None
     if mask is not None and region is not None:
         still_people = (mask >= 0.5) & region

@@ -21,7 +21,7 @@ from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, Metho
 from frontend.dynamic.box_memory import BoxMemory
 from frontend.dynamic.free_space import FreeSpaceCheck
 from frontend.dynamic.fusion import fuse
-from frontend.dynamic.keyframe_masks import KeyframeMaskLedger, MaskParts, compose_mask, still_region
+from frontend.dynamic.keyframe_masks import KeyframeMaskLedger, MaskParts, compose_mask, still_region, vacated_region
 from frontend.dynamic.region_motion import RegionCarry, RegionMotion, box_centre, confirmed_regions
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import DynamicConfig
@@ -152,6 +152,7 @@ class DynamicRejector:
         self._mask_parts = MaskParts(outputs, self._weights, self._motion_methods, self.cfg.fusion, ctx.gray.shape,
                                      motion_region, prior_mask, self._person_boxes(ctx, 0), ctx.depth)
         self._mask_parts.still_region = self._still_region
+        self._mask_parts.vacated = self._vacated_boxes(ctx)
         self._fused_mask = None
         if self._dump_dir is not None:
             self._dump(ctx, outputs, fused)
@@ -278,6 +279,19 @@ class DynamicRejector:
                   min(int(np.ceil(d.x1)) + pad, w), min(int(np.ceil(d.y1)) + pad, h))
                  for d in ctx.detections or () if d.class_id in self.cfg.classes.dynamic]
         return [b for b in boxes if b[2] > b[0] and b[3] > b[1]]
+
+    def _vacated_boxes(self, ctx: DynamicContext) -> Optional[np.ndarray]:
+        """keyframe_masks.vacated_region of this frame's held and fresh dynamic-class boxes."""
+        carried = self._box_memory.carried
+        if not carried or not ctx.detections:
+            return None
+        held_ids = {id(d) for d in carried}
+        boxes = [(d, (max(int(d.x0), 0), max(int(d.y0), 0), min(int(np.ceil(d.x1)), ctx.gray.shape[1]),
+                      min(int(np.ceil(d.y1)), ctx.gray.shape[0])))
+                 for d in ctx.detections if d.class_id in self.cfg.classes.dynamic]
+        fresh = [b for d, b in boxes if id(d) not in held_ids]
+        held = [b for d, b in boxes if id(d) in held_ids]
+        return vacated_region(ctx.gray.shape, fresh, held) if fresh and held else None
 
     def _box_prior_mask(self, ctx: DynamicContext) -> Optional[np.ndarray]:
         """``box_prior`` inside every dilated dynamic-class box (None when off or no detections)."""
