@@ -270,27 +270,25 @@ class DynamicRejector:
         self.people_still = int(still.sum())
         return still_region(ctx.gray.shape, boxes, still)
 
-    def _person_boxes(self, ctx: DynamicContext, pad: int) -> list[tuple[int, int, int, int]]:
-        """The dynamic-class detections as whole-pixel boxes (x0, y0, x1, y1), grown by ``pad`` pixels,
-        clipped to the image, empty ones left out: the box prior, the standing-still test and the
-        detector-free regions all work on these."""
+    def _person_boxes(self, ctx: DynamicContext, pad: int, detections: Optional[list] = None
+                      ) -> list[tuple[int, int, int, int]]:
+        """The dynamic-class detections (default: the frame's) as whole-pixel boxes (x0, y0, x1, y1), grown
+        by ``pad`` pixels, clipped to the image, empty ones left out: the box prior, the standing-still test
+        and the detector-free regions all work on these."""
         h, w = ctx.gray.shape
         boxes = [(max(int(d.x0) - pad, 0), max(int(d.y0) - pad, 0),
                   min(int(np.ceil(d.x1)) + pad, w), min(int(np.ceil(d.y1)) + pad, h))
-                 for d in ctx.detections or () if d.class_id in self.cfg.classes.dynamic]
+                 for d in (ctx.detections if detections is None else detections) or ()
+                 if d.class_id in self.cfg.classes.dynamic]
         return [b for b in boxes if b[2] > b[0] and b[3] > b[1]]
 
     def _vacated_boxes(self, ctx: DynamicContext) -> Optional[np.ndarray]:
         """keyframe_masks.vacated_region of this frame's held and fresh dynamic-class boxes."""
-        carried = self._box_memory.carried
+        carried = {id(d) for d in self._box_memory.carried}
         if not carried or not ctx.detections:
             return None
-        held_ids = {id(d) for d in carried}
-        boxes = [(d, (max(int(d.x0), 0), max(int(d.y0), 0), min(int(np.ceil(d.x1)), ctx.gray.shape[1]),
-                      min(int(np.ceil(d.y1)), ctx.gray.shape[0])))
-                 for d in ctx.detections if d.class_id in self.cfg.classes.dynamic]
-        fresh = [b for d, b in boxes if id(d) not in held_ids]
-        held = [b for d, b in boxes if id(d) in held_ids]
+        fresh = self._person_boxes(ctx, 0, [d for d in ctx.detections if id(d) not in carried])
+        held = self._person_boxes(ctx, 0, [d for d in ctx.detections if id(d) in carried])
         return vacated_region(ctx.gray.shape, fresh, held) if fresh and held else None
 
     def _box_prior_mask(self, ctx: DynamicContext) -> Optional[np.ndarray]:
