@@ -268,3 +268,32 @@ def test_a_held_box_the_person_left_for_a_box_inside_it_leaves_the_mask():
 def _detection(x0, y0, x1, y1):
     from frontend.dynamic.base import Detection
     return Detection(float(x0), float(y0), float(x1), float(y1), 0, 0.9)
+
+
+def test_a_run_leaves_a_held_box_over_nobody_out_of_its_live_mask():
+    """The same through ``System``: a 'person' box that shrinks to a box inside it (IoU 0.22, so the detector
+    memory holds the big one beside the small one) leaves the rest of the big box out of the mask."""
+    from slam.datasets import SyntheticSequence
+    from slam.run.dynamic_eval import synthetic_config
+    from slam.runtime.system import System
+
+    from frontend.dynamic.base import Detection
+    big, small = (170.0, 90.0, 470.0, 390.0), (270.0, 140.0, 370.0, 340.0)
+
+    class Shrinking(DetectorDefaults):
+        def detect(self, bgr, timestamp: float = 0.0) -> list:
+            return [Detection(*(big if timestamp < 0.1 else small), 0, 0.9)]
+
+    sequence = SyntheticSequence(n_frames=6, movers="none", seed=0)
+    system = System(synthetic_config(sequence, preset="dynamic_all"), detector=Shrinking(), sequence_name="held")
+    shares = []
+    for frame in sequence:
+        system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
+        mask = system.last_dynamic_mask
+        rest = np.zeros(mask.shape, bool)
+        rest[90:390, 170:470] = True
+        rest[140:340, 270:370] = False
+        shares.append(float((mask[rest] >= 0.5).mean()))
+    system.close()
+    assert shares[0] > 0.3                # the big box's fill took in the wall while it was the detection
+    assert max(shares[3:]) < 0.02         # held beside the small one, over nobody: out of the mask
