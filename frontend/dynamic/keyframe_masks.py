@@ -40,7 +40,11 @@ from frontend.dynamic.fusion import fuse
 
 Box = tuple[int, int, int, int]          # x0, y0, x1, y1 whole pixels
 _MOVED_REGION_PROB = 0.9                 # a region the free-space test saw move, as region_motion's regions
-_VACATED_COVER = 0.7                     # a fresh box this much inside a held one: the person found again
+_VACATED_COVER = 0.7
+"""A fresh box at least this much inside a held one is its person found again, partly hidden: two people
+side by side overlap each other's boxes by an arm's width (~10-30 %), a missed person's held box and a
+walker passing in front of them by as much as the walker's box, which is why only the *rest* of the held
+box (less every fresh box) leaves the mask, and only where a fresh box lies inside it."""
 _BODY_REACH_M = 0.7
 """How far in depth a person reaches from the middle of their body (their layer): an arm stretched
 towards the camera (~0.6 m) plus half a torso. Past it a pixel of their box is something else."""
