@@ -74,6 +74,9 @@ class DynamicContext:
     detections: Optional[list[Detection]] = None   # None when no enabled method needs a detector
     predicted_T_cw: Optional[np.ndarray] = None    # constant-velocity prediction (world -> camera)
     last_T_cw: Optional[np.ndarray] = None         # pose of the previous tracked frame
+    # Person boxes (x0, y0, x1, y1) -> their depth layer (box_depth_segmentation.person_layer), kept for the
+    # frame so box_depth's seeding and the keyframe mask's off-body test compute each one once.
+    person_layers: dict = field(default_factory=dict)
 
 
 @dataclass

@@ -211,7 +211,7 @@ class BoxDepthMethod:
         depth = np.asarray(ctx.depth, dtype=np.float32)
         uv = frame.uv_raw
         # Algorithm 1: PDT pixels; Algorithm 2: passive objects connected in depth to a PDT.
-        mask, pdt_boxes, fallback = self._segment_targets(ctx.detections, depth)
+        mask, pdt_boxes, fallback = self._segment_targets(ctx.detections, depth, ctx.person_layers)
         prob, passive_mask, dragged = self._dragged_passives(ctx.detections, depth, mask, pdt_boxes, uv, n)
         seg_mask = mask | passive_mask
         if n:
@@ -229,7 +229,8 @@ class BoxDepthMethod:
                     dynamic=int(dyn.sum()), reused=int(reused.sum()), static_matches=n_static_matches)
         return MethodOutput(prob, seg_mask.astype(np.float32), info)
 
-    def _segment_targets(self, detections: list[Detection], depth: np.ndarray) -> tuple[np.ndarray, list, int]:
+    def _segment_targets(self, detections: list[Detection], depth: np.ndarray,
+                         layers: dict) -> tuple[np.ndarray, list, int]:
         """Algorithm 1: the PDT pixels (HxW bool), the PDT boxes in pixels, and how many boxes had no
         seed whose fill passed the height test (``info['fallback']``)."""
         h, w = depth.shape[:2]
@@ -242,7 +243,11 @@ class BoxDepthMethod:
             if b is None:
                 continue
             x0, y0, x1, y1 = b
-            layer = person_layer(b, depth) if self.cfg.seed_past_occluder else None
+            layer = None
+            if self.cfg.seed_past_occluder:
+                if b not in layers:                  # the frame's cache (DynamicContext.person_layers)
+                    layers[b] = person_layer(b, depth)
+                layer = layers[b]
             seg, accepted = segment_box(depth[y0:y1, x0:x1], self.cfg, layer)
             fallback += accepted < 0
             mask[y0:y1, x0:x1] |= seg

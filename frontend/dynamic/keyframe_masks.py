@@ -58,7 +58,8 @@ class MaskParts:
 
     def __init__(self, outputs: dict[str, MethodOutput], weights: list[float], motion_methods: list[int],
                  fusion: str, shape: tuple[int, int], motion_region: Optional[np.ndarray],
-                 prior: Optional[np.ndarray], boxes: Sequence[Box] = (), depth: Optional[np.ndarray] = None):
+                 prior: Optional[np.ndarray], boxes: Sequence[Box] = (), depth: Optional[np.ndarray] = None,
+                 layers: Optional[dict] = None):
         self._outputs = outputs
         self._weights = weights
         self._motion_methods = motion_methods     # indices of the methods that measure motion
@@ -75,7 +76,8 @@ class MaskParts:
         self.vacated: Optional[np.ndarray] = None
         self._fused: Optional[tuple[Optional[np.ndarray]]] = None
         self._motion: Optional[tuple[Optional[np.ndarray]]] = None
-        self._boxes, self._depth = list(boxes), depth      # the person boxes and the frame's depth (off_body)
+        # the person boxes, the frame's depth and the layers known for its boxes (off_body)
+        self._boxes, self._depth, self._layers = list(boxes), depth, layers
         self._off_body: Optional[tuple[Optional[np.ndarray]]] = None
 
     @property
@@ -99,13 +101,14 @@ class MaskParts:
     def off_body(self) -> Optional[np.ndarray]:
         """HxW bool: the pixels of person boxes that lie off every holding box's body (None: no such pixel)."""
         if self._off_body is None:
-            self._off_body = (None if self._depth is None else off_body_region(self._boxes, self._depth),)
+            self._off_body = (None if self._depth is None
+                              else off_body_region(self._boxes, self._depth, self._layers),)
         return self._off_body[0]
 
     def keep(self) -> "MaskParts":
         """Compute the masks now and let go of the methods' outputs and the depth (a keyframe's record)."""
         _ = self.fused, self.motion, self.off_body
-        self._outputs, self._depth = {}, None
+        self._outputs, self._depth, self._layers = {}, None, None
         return self
 
 
@@ -155,17 +158,21 @@ def vacated_region(shape: tuple[int, int], fresh: Sequence[Box], held: Sequence[
     return region if region.any() else None
 
 
-def off_body_region(boxes: Sequence[Box], depth: np.ndarray) -> Optional[np.ndarray]:
+def off_body_region(boxes: Sequence[Box], depth: np.ndarray, layers: Optional[dict] = None) -> Optional[np.ndarray]:
     """HxW bool: pixels with depth inside a person box that lie more than ``_BODY_REACH_M`` from the person
     layer of every box holding them; a box without a layer (too little depth) counts as all body. None when
-    no pixel is off the body."""
+    no pixel is off the body. ``layers`` (box -> layer) holds those already computed for the frame (box_depth's,
+    ``DynamicContext.person_layers``); the rest are computed and added."""
+    layers = {} if layers is None else layers
     if not boxes:
         return None
     near = np.full(depth.shape, np.inf, np.float32)      # per pixel: the distance to the nearest holding layer
     for box in boxes:
         x0, y0, x1, y1 = box
         crop = depth[y0:y1, x0:x1]
-        layer = person_layer(box, depth)
+        if box not in layers:
+            layers[box] = person_layer(box, depth)
+        layer = layers[box]
         gap = np.zeros(crop.shape, np.float32) if layer is None else np.abs(crop - np.float32(layer))
         np.minimum(near[y0:y1, x0:x1], gap, out=near[y0:y1, x0:x1])
     off = np.isfinite(near) & (near > _BODY_REACH_M) & (depth > 0)

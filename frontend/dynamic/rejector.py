@@ -150,7 +150,8 @@ class DynamicRejector:
         self.last_outputs, self.last_fused, self.last_keypoints = outputs, fused, frame.uv_raw
         motion_region = None if self._motion_region is None else _MOTION_REGION_PROB * self._motion_region
         self._mask_parts = MaskParts(outputs, self._weights, self._motion_methods, self.cfg.fusion, ctx.gray.shape,
-                                     motion_region, prior_mask, self._person_boxes(ctx, 0), ctx.depth)
+                                     motion_region, prior_mask, self._person_boxes(ctx, 0), ctx.depth,
+                                     ctx.person_layers)
         self._mask_parts.still_region = self._still_region
         self._mask_parts.vacated = self._vacated_boxes(ctx)
         self._fused_mask = None
