@@ -6,11 +6,18 @@ pixel (p >= 0.5) against the exact masks.
     python tools/hard_scenes.py                               # all four, 150 frames, dynamic_all
     python tools/hard_scenes.py close_pass --frames 150 --preset dynamic_all --set tracking.x=...
     python tools/hard_scenes.py --composite ../shared/data/rgbd_dataset_freiburg1_rpy_first400 [scenes]
+    python tools/hard_scenes.py three_close --repeats 3       # seeds 0, 1, 2: each one's ATE ratio, the median
 
 ``--composite FOLDER`` puts the scripted people into a real sequence instead (slam/datasets/composite.py:
 its ground-truth camera path, its own frames behind the people; also ``two_walk`` and ``walk_stand``), all
 of its frames unless ``--frames`` is given, compared with the same frames untouched; the camera is the
 folder's (as ``dynslam run`` resolves it).
+
+``--repeats N`` runs the clean path and every scene N times, with seeds 0..N-1 for every random choice
+(``slam.run.run_config.seeded``: RANSAC, k-means seeding, depth_sdf's pairs; the scene itself stays the
+same), and reports each seed's ATE over the clean run's at the same seed, and their median: the ratio of a
+scene where people cover most of the view moves by +-0.2 with the seed alone (three_close, seeds 0-4: 1.49,
+1.36, 1.45, 1.82, 1.79), so one seed's pass or failure says little. The table's other columns are seed 0's.
 
 The detector is the scene's ground-truth person boxes widened by 8 px (as `dynslam demo` uses), with the
 frames on which the scene's detector misses the person left out (``HardScene.detector_misses``).
@@ -26,8 +33,8 @@ from slam.datasets import SyntheticSequence
 from slam.datasets.composite import COMPOSITE_SCENES, CompositeScene
 from slam.datasets.synthetic_scenes import HARD_SCENES, HardScene
 from slam.run.demo import DEMO_ORACLE_MARGIN_PX
-from slam.run.run_config import parse_overrides, resolve_run_config
-from slam.run.dynamic_eval import evaluate_synthetic, scene_detector, synthetic_config
+from slam.run.run_config import parse_overrides, resolve_run_config, seeded
+from slam.run.dynamic_eval import evaluate_synthetic, median_ate_ratio, scene_detector, synthetic_config
 
 
 
@@ -36,7 +43,9 @@ def main(argv=None) -> int:
     parser.add_argument("scenes", nargs="*", help=f"scenes to run (default: all of {', '.join(HARD_SCENES)}; "
                         f"with --composite also {', '.join(COMPOSITE_SCENES[len(HARD_SCENES) + 1:])})")
     parser.add_argument("--frames", type=int, default=None, help="frames (default: 150; with --composite all)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="the scene's seed (people, paths, textures)")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="runs per scene with seeds 0..N-1 for SLAM's random choices (default 1)")
     parser.add_argument("--preset", default="dynamic_all")
     parser.add_argument("--composite", type=Path, default=None, metavar="FOLDER",
                         help="a real TUM-layout sequence with groundtruth.txt to composite the people into")
@@ -58,34 +67,43 @@ def main(argv=None) -> int:
         def make(name: str):
             return CompositeScene(name, args.composite, intrinsics, n_frames=args.frames, seed=args.seed)
 
-        def config_of(seq):
-            return resolve_run_config(args.composite, [args.preset], overrides)
+        def config_of(seq, seed: int):
+            return seeded(resolve_run_config(args.composite, [args.preset], overrides), seed)
     else:
         frames = args.frames or 150
 
         def make(name: str):
             return HardScene(name, n_frames=frames, seed=args.seed)
 
-        def config_of(seq):
-            return synthetic_config(seq, preset=args.preset, **overrides)
+        def config_of(seq, seed: int):
+            return seeded(synthetic_config(seq, preset=args.preset, **overrides), seed)
+    seeds = range(max(1, args.repeats))
     clean_seq = make("none") if args.composite is not None else SyntheticSequence(n_frames=frames, seed=args.seed)
-    clean = evaluate_synthetic(clean_seq, config_of(clean_seq))
+    cleans = [evaluate_synthetic(clean_seq, config_of(clean_seq, s)) for s in seeds]
+    clean = cleans[0]
     print(f"same path without people: ATE {clean.ate_rmse * 1000:.1f} mm, worst frame {clean.max_error * 1000:.1f} mm, "
-          f"{len(clean.lost_frames)} LOST")
+          f"{len(clean.lost_frames)} LOST" + ("" if len(cleans) == 1 else
+                                            f"; seeds {', '.join(f'{c.ate_rmse * 1000:.1f}' for c in cleans)} mm"))
+    per_seed = "" if len(cleans) == 1 else f" ATE / clean, seeds 0-{len(cleans) - 1} (median) | worst mm, any seed |"
     rows = ["| scene | peak cover | misses | ATE mm | / clean | worst mm | LOST | fused P/R (features) "
-            "| fused P/R (kf masks) |", "|---|---|---|---|---|---|---|---|---|"]
+            "| fused P/R (kf masks) |" + per_seed, "|---|---|---|---|---|---|---|---|---|" + "---|---|" * bool(per_seed)]
     details = []
     for name in scenes:
         scene = make(name)
-        result = evaluate_synthetic(scene, config_of(scene),
-                                    detector=scene_detector(scene, DEMO_ORACLE_MARGIN_PX))
+        results = [evaluate_synthetic(scene, config_of(scene, s), detector=scene_detector(scene, DEMO_ORACLE_MARGIN_PX))
+                   for s in seeds]
+        result = results[0]
         cls, fused = result.classification, result.keyframe_masks.get("fused")
         mask_pr = f"{fused.precision:.2f} / {fused.recall:.2f}" if fused else "-"
         rows.append(f"| {name} | {scene.coverage.max():.2f} | {len(scene.detector_misses)} "
                     f"| {result.ate_rmse * 1000:.1f} | {result.ate_rmse / clean.ate_rmse:.2f} "
                     f"| {result.max_error * 1000:.1f} | {len(result.lost_frames)} "
                     f"| {cls.precision['fused']:.2f} / {cls.recall['fused']:.2f} | {mask_pr} |")
-        details.append(f"\n{name}: per feature\n{cls.table()}\n{name}: keyframe masks "
+        if per_seed:
+            ratios = [r.ate_rmse / c.ate_rmse for r, c in zip(results, cleans)]
+            rows[-1] += (f" {' '.join(f'{x:.2f}' for x in ratios)} ({median_ate_ratio(results, cleans):.2f}) "
+                         f"| {max(r.max_error for r in results) * 1000:.1f} |")
+        details.append(f"\n{name}: per feature (seed 0)\n{cls.table()}\n{name}: keyframe masks "
                        f"({result.keyframes} keyframes)\n{result.mask_table()}")
         print(rows[-1], flush=True)
     print()

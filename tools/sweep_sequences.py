@@ -94,7 +94,7 @@ def composite_options(spec: str) -> dict[str, Any]:
 
 def build_pipeline(job: dict):
     """The Pipeline of one job, configured as ``dynslam run`` would be plus the job's seed."""
-    from slam.run.run_config import resolve_run_config
+    from slam.run.run_config import resolve_run_config, seeded
     from slam.datasets import TumDataset
     from slam.run.demo import demo_detector
     from slam.run.pipeline import Pipeline
@@ -124,18 +124,6 @@ def build_pipeline(job: dict):
     config = seeded(resolve_run_config(root, files, overrides), job["seed"])
     dataset = TumDataset(root, depth_scale=config.camera.depth_scale, max_dt=config.max_association_dt)
     return Pipeline(dataset, config, job["run_dir"], max_frames)
-
-
-def seeded(config, seed: int):
-    """Repeats differ only in their seeds: RANSAC's and every dynamic method's random choices."""
-    from slam.core.dynamic_config import METHOD_NAMES
-
-    config.seed = seed
-    for method in METHOD_NAMES:
-        section = getattr(config.dynamic, method)
-        if "seed" in type(section).model_fields:       # box_depth makes no random choice
-            section.seed = seed
-    return config
 
 
 def check_generated(sequence: str) -> Optional[str]:

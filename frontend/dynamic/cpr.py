@@ -68,6 +68,9 @@ Interpretation of the paper, and deviations (numbers are all in ``CprConfig``):
 * Iterations: the paper gives no count. ``icp_iterations`` (6) in all, the first ``icp_intensity_iterations``
   (3) intensity-assisted. On Bonn crowd 4, 6, 8, 10 and 20 iterations gave the same masks within noise (more
   iterations slightly worse: static sub-poses drift along their weak directions), so the cheap end is used.
+  4 instead of 6 saves little and is not the same per frame (``python tools/cpr_timing.py --frames 200
+  --set cpr.icp_iterations=4``, 2026-11-27: sub-poses 8.4 -> 6.9 ms, process 19.5 -> 18.3 ms, the masks'
+  dynamic-pixel IoU with 6 iterations' 0.69), so 6 stays.
   Each sub-cloud is registered with at most ``icp_max_points`` (150) evenly spread points; all sub-clouds
   share one candidate query per iteration (75 points: precision 0.820 -> 0.789 on the generated people). A sub-cloud stops iterating when it moves < 0.1 mm and 0.01 deg.
 * Registration target: the reference frame's depth samples (every 4th pixel, ~16k points) projected onto their

@@ -118,6 +118,12 @@ class SceneEvaluation:
         return "\n".join(lines)
 
 
+def median_ate_ratio(runs: list[SceneEvaluation], clean_runs: list[SceneEvaluation]) -> float:
+    """The median over seeds of a scene's ATE over the clean path's ATE at the same seed (runs[k] and
+    clean_runs[k] share seed k): the hard scenes' bar, robust to one seed's luck."""
+    return float(np.median([r.ate_rmse / c.ate_rmse for r, c in zip(runs, clean_runs, strict=True)]))
+
+
 def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary_px: int = 3,
                        detector=None, observer: Optional[Callable] = None) -> SceneEvaluation:
     """Run ``System`` on ``sequence`` (a ``SyntheticSequence`` or ``HardScene``) with ``detector``

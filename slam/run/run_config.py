@@ -58,3 +58,18 @@ def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str]
             "says no freiburg1/2/3 or bonn); using default intrinsics "
             "(pass --config tum_fr1|tum_fr2|tum_fr3|bonn or your own YAML)")
     return config
+
+
+def seeded(config, seed: int):
+    """``config`` with every random choice drawn from ``seed``: RANSAC's (OpenCV's generator) and each
+    dynamic method's (cpr's k-means seeding, depth_sdf's pairs, flow_epipolar's F). Runs that differ only
+    here show how much a result owes to those draws (``tools/sweep.py --repeats``, ``tools/hard_scenes.py
+    --repeats``, the hard-scene test's median of three)."""
+    from slam.core.dynamic_config import METHOD_NAMES
+
+    config.seed = seed
+    for method in METHOD_NAMES:
+        section = getattr(config.dynamic, method)
+        if "seed" in type(section).model_fields:       # box_depth makes no random choice
+            section.seed = seed
+    return config
