@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import synthetic_config, synthetic_sequence
+from conftest import load_tool, synthetic_config, synthetic_sequence
 from slam.datasets.synthetic_scenes import HARD_SCENES, MISS_COVERAGE, HardScene
 from frontend.dynamic.base import keypoints_in_mask
 from slam.run.dynamic_eval import evaluate_synthetic, median_ate_ratio, scene_detector
@@ -218,3 +218,16 @@ def test_keyframe_masks_leave_a_standing_person_out_and_cover_them_once_they_wal
     # alone (cpr, flow_epipolar) may still flag a little of them.
     assert len(standing_cover) >= 8 and max(standing_cover) < 0.1, standing_cover
     assert walking_truth > 0 and walking_hits / walking_truth >= 0.9   # the hidden check's recall bar
+
+
+def test_the_tool_reports_every_seeds_ratio_and_their_median(capsys):
+    """``tools/hard_scenes.py --repeats N``: one ratio per seed (ATE over the clean run at the same seed)
+    and the median the test holds, both read back from the printed row."""
+    hard_scenes = load_tool("hard_scenes")
+    assert hard_scenes.main(["border", "--frames", "16", "--repeats", "2"]) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| border"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    seeds, median = cells[-2].split("(")
+    ratios = [float(x) for x in seeds.split()]
+    assert len(ratios) == 2 and ratios[0] == float(cells[4])        # seed 0's ratio is the table's own
+    assert float(median.rstrip(")")) == pytest.approx(float(np.median(ratios)), abs=0.006)
