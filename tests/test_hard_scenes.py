@@ -121,6 +121,13 @@ def clean_runs() -> list:
 _NOT_YET: dict[str, str] = {}
 
 
+def _evaluate(scene: HardScene, seed: int = 0, observer=None):
+    """One run of ``scene`` under the default config with every random choice drawn from ``seed``, the
+    scene's true boxes (8 px wider, as ``dynslam demo``) as the detector."""
+    return evaluate_synthetic(scene, seeded(synthetic_config(scene, preset="dynamic_all"), seed),
+                              detector=scene_detector(scene, margin_px=8), observer=observer)
+
+
 @pytest.fixture(scope="module")
 def scene_runs(scenes):
     """Each scene run once under the default config (lazily), shared by the tests that look at it:
@@ -135,9 +142,7 @@ def scene_runs(scenes):
                 still.append(system.dynamic_filter.people_still)
                 systems[:] = [system]
 
-            result = evaluate_synthetic(scene, synthetic_config(scene, preset="dynamic_all"),
-                                        detector=scene_detector(scene, margin_px=8), observer=observe)
-            runs[name] = (result, still, systems[0])
+            runs[name] = (_evaluate(scene, observer=observe), still, systems[0])
         return runs[name]
     return run
 
@@ -145,10 +150,8 @@ def scene_runs(scenes):
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=_NOT_YET[n], strict=True))
                                   if n in _NOT_YET else n for n in HARD_SCENES])
 def test_slam_on_hard_scene_stays_near_the_clean_path(name, scenes, scene_runs, clean_runs):
-    scene = scenes[name]
-    runs = [scene_runs(name)[0]] + [       # seed 0's run is the one the other tests look at
-        evaluate_synthetic(scene, seeded(synthetic_config(scene, preset="dynamic_all"), seed),
-                           detector=scene_detector(scene, margin_px=8)) for seed in SEEDS[1:]]
+    # seed 0's run is the one the other tests look at
+    runs = [scene_runs(name)[0]] + [_evaluate(scenes[name], seed) for seed in SEEDS[1:]]
     for seed, run in zip(SEEDS, runs):
         assert run.max_error <= MAX_FRAME_ERROR_M, f"seed {seed}: a tracked frame is {run.max_error:.3f} m off"
     ratio = median_ate_ratio(runs, clean_runs)

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
+
+if TYPE_CHECKING:   # annotations only: the functions below import the config modules when called
+    from slam.core.config import SlamConfig
 
 
 def parse_overrides(pairs: Sequence[str]) -> dict:
@@ -60,7 +63,7 @@ def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str]
     return config
 
 
-def seeded(config, seed: int):
+def seeded(config: SlamConfig, seed: int) -> SlamConfig:
     """``config`` with every random choice drawn from ``seed``: RANSAC's (OpenCV's generator) and each
     dynamic method's (cpr's k-means seeding, depth_sdf's pairs, flow_epipolar's F). Runs that differ only
     here show how much a result owes to those draws (``tools/sweep.py --repeats``, ``tools/hard_scenes.py
