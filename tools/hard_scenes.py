@@ -38,7 +38,7 @@ from slam.run.dynamic_eval import evaluate_synthetic, median_ate_ratio, scene_de
 
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scenes", nargs="*", help=f"scenes to run (default: all of {', '.join(HARD_SCENES)}; "
                         f"with --composite also {', '.join(COMPOSITE_SCENES[len(HARD_SCENES) + 1:])})")
@@ -51,16 +51,13 @@ def main(argv=None) -> int:
                         help="a real TUM-layout sequence with groundtruth.txt to composite the people into")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value after the preset (repeatable)")
-    args = parser.parse_args(argv)
-    known = COMPOSITE_SCENES[1:] if args.composite else HARD_SCENES
-    scenes = args.scenes or list(known)
-    unknown = sorted(set(scenes) - set(known))
-    if unknown:
-        parser.error(f"unknown scene(s) {', '.join(unknown)}; choose from {', '.join(known)}")
-    overrides = parse_overrides(args.set)
+    return parser
+
+
+def _sources(args, overrides: dict):
+    """(scene by name, the config of a sequence at a seed, the same path without people) for the generated
+    room or, with ``--composite``, the real sequence."""
     if args.composite is not None:
-        if not (args.composite / "groundtruth.txt").is_file():
-            parser.error(f"--composite {args.composite}: not a sequence folder with groundtruth.txt")
         config = resolve_run_config(args.composite, [args.preset], overrides)   # the folder's own camera
         intrinsics = (config.camera.fx, config.camera.fy, config.camera.cx, config.camera.cy)
 
@@ -68,17 +65,47 @@ def main(argv=None) -> int:
             return CompositeScene(name, args.composite, intrinsics, n_frames=args.frames, seed=args.seed)
 
         def config_of(seq, seed: int):
-            return seeded(resolve_run_config(args.composite, [args.preset], overrides), seed)
-    else:
-        frames = args.frames or 150
+            return seeded(config.model_copy(deep=True), seed)
+        return make, config_of, make("none")
+    frames = args.frames or 150
 
-        def make(name: str):
-            return HardScene(name, n_frames=frames, seed=args.seed)
+    def make_hard(name: str):
+        return HardScene(name, n_frames=frames, seed=args.seed)
 
-        def config_of(seq, seed: int):
-            return seeded(synthetic_config(seq, preset=args.preset, **overrides), seed)
+    def config_of_synthetic(seq, seed: int):
+        return seeded(synthetic_config(seq, preset=args.preset, **overrides), seed)
+    return make_hard, config_of_synthetic, SyntheticSequence(n_frames=frames, seed=args.seed)
+
+
+def _row(name: str, scene, results: list, cleans: list) -> str:
+    """The scene's table row: seed 0's measures, and with several seeds each one's ratio, the median and
+    the worst frame of any seed."""
+    result, clean = results[0], cleans[0]
+    cls, fused = result.classification, result.keyframe_masks.get("fused")
+    mask_pr = f"{fused.precision:.2f} / {fused.recall:.2f}" if fused else "-"
+    row = (f"| {name} | {scene.coverage.max():.2f} | {len(scene.detector_misses)} "
+           f"| {result.ate_rmse * 1000:.1f} | {result.ate_rmse / clean.ate_rmse:.2f} "
+           f"| {result.max_error * 1000:.1f} | {len(result.lost_frames)} "
+           f"| {cls.precision['fused']:.2f} / {cls.recall['fused']:.2f} | {mask_pr} |")
+    if len(results) > 1:
+        ratios = " ".join(f"{r.ate_rmse / c.ate_rmse:.2f}" for r, c in zip(results, cleans))
+        row += (f" {ratios} ({median_ate_ratio(results, cleans):.2f}) "
+                f"| {max(r.max_error for r in results) * 1000:.1f} |")
+    return row
+
+
+def main(argv=None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    known = COMPOSITE_SCENES[1:] if args.composite else HARD_SCENES
+    scenes = args.scenes or list(known)
+    unknown = sorted(set(scenes) - set(known))
+    if unknown:
+        parser.error(f"unknown scene(s) {', '.join(unknown)}; choose from {', '.join(known)}")
+    if args.composite is not None and not (args.composite / "groundtruth.txt").is_file():
+        parser.error(f"--composite {args.composite}: not a sequence folder with groundtruth.txt")
+    make, config_of, clean_seq = _sources(args, parse_overrides(args.set))
     seeds = range(max(1, args.repeats))
-    clean_seq = make("none") if args.composite is not None else SyntheticSequence(n_frames=frames, seed=args.seed)
     cleans = [evaluate_synthetic(clean_seq, config_of(clean_seq, s)) for s in seeds]
     clean = cleans[0]
     print(f"same path without people: ATE {clean.ate_rmse * 1000:.1f} mm, worst frame {clean.max_error * 1000:.1f} mm, "
@@ -92,19 +119,9 @@ def main(argv=None) -> int:
         scene = make(name)
         results = [evaluate_synthetic(scene, config_of(scene, s), detector=scene_detector(scene, DEMO_ORACLE_MARGIN_PX))
                    for s in seeds]
-        result = results[0]
-        cls, fused = result.classification, result.keyframe_masks.get("fused")
-        mask_pr = f"{fused.precision:.2f} / {fused.recall:.2f}" if fused else "-"
-        rows.append(f"| {name} | {scene.coverage.max():.2f} | {len(scene.detector_misses)} "
-                    f"| {result.ate_rmse * 1000:.1f} | {result.ate_rmse / clean.ate_rmse:.2f} "
-                    f"| {result.max_error * 1000:.1f} | {len(result.lost_frames)} "
-                    f"| {cls.precision['fused']:.2f} / {cls.recall['fused']:.2f} | {mask_pr} |")
-        if per_seed:
-            ratios = [r.ate_rmse / c.ate_rmse for r, c in zip(results, cleans)]
-            rows[-1] += (f" {' '.join(f'{x:.2f}' for x in ratios)} ({median_ate_ratio(results, cleans):.2f}) "
-                         f"| {max(r.max_error for r in results) * 1000:.1f} |")
-        details.append(f"\n{name}: per feature (seed 0)\n{cls.table()}\n{name}: keyframe masks "
-                       f"({result.keyframes} keyframes)\n{result.mask_table()}")
+        rows.append(_row(name, scene, results, cleans))
+        details.append(f"\n{name}: per feature (seed 0)\n{results[0].classification.table()}\n{name}: keyframe "
+                       f"masks ({results[0].keyframes} keyframes)\n{results[0].mask_table()}")
         print(rows[-1], flush=True)
     print()
     print("\n".join(rows))
