@@ -1,6 +1,7 @@
 """The free-space test of the keyframe masks (frontend/dynamic/free_space.py): a surface standing where an
 earlier frame saw through to a farther one moved in; one consistent with the earlier frames did not; one
 the earlier frame could not see gives no evidence."""
+import cv2
 import numpy as np
 import pytest
 
@@ -27,8 +28,13 @@ def wall(box: tuple[int, int, int, int] = None, box_depth: float = 1.5) -> np.nd
     return depth
 
 
-def check(lags=(0.5, 1.0)) -> FreeSpaceCheck:
-    return FreeSpaceCheck(CAMERA, lags, margin_m=0.1, window_px=20)
+def check(lags=(0.5, 1.0), region_lags=()) -> FreeSpaceCheck:
+    return FreeSpaceCheck(CAMERA, lags, margin_m=0.1, window_px=20, region_lags_s=region_lags)
+
+
+def blind() -> np.ndarray:
+    """A frame that saw nothing where the keyframe looks (turned away, or no depth): no evidence from it."""
+    return np.zeros((480, 640), np.float32)
 
 
 def test_a_surface_that_moved_in_front_of_the_wall_is_moving_and_the_wall_is_not():
@@ -143,3 +149,58 @@ def test_the_moving_evidence_grows_over_the_moving_surface_not_onto_the_wall_bes
     assert known[:, 370:400].all() and not moving[:, 368:].any()    # the wall right beside it: static
     assert not moving[:, :192].any() and not moving[:92].any()
 
+
+
+def test_a_short_lag_finds_a_region_that_moved_in_where_the_long_lags_were_turned_away():
+    """On a fast turn the frames 0.5 and 1 s back did not see the part of the view a person walked into;
+    the frame 0.25 s back saw the wall there: the person is a moving region only with the short lag."""
+    box = (200, 100, 360, 400)
+    inner = (slice(box[1] + 10, box[3] - 10), slice(box[0] + 10, box[2] - 10))
+    found = {}
+    for region_lags in ((), (0.25,)):
+        fs = check(region_lags=region_lags)
+        fs.remember(0.0, blind(), pose_cw(0.0))
+        fs.remember(0.5, blind(), pose_cw(0.0))
+        fs.remember(0.75, wall(), pose_cw(0.0))
+        found[region_lags] = fs.keyframe(None, 1.0, wall(box), pose_cw(0.0))
+    assert found[()] is None                                     # nobody could tell
+    moving, known, region = found[(0.25,)]
+    assert region[inner].all() and not region.any(axis=0)[400:].any()
+    assert not known.any() and not moving.any()                  # the long lags' evidence alone
+
+
+def test_a_short_lag_never_shows_a_surface_unmoved():
+    """0.25 s back a walker's body still covers much of where it is now (1.2 m/s: 0.3 m, half a body): the
+    short lag may find a region that moved in, never say "was there", so it cannot take a walker out of the
+    masks."""
+    box = (200, 100, 360, 400)
+    fs = check(region_lags=(0.25,))
+    fs.remember(0.0, blind(), pose_cw(0.0))
+    fs.remember(0.5, blind(), pose_cw(0.0))
+    fs.remember(0.75, wall((240, 100, 400, 400)), pose_cw(0.0))   # the body 40 px to the right then
+    moving, known, region = fs.keyframe(None, 1.0, wall(box), pose_cw(0.0))
+    assert region[110:390, 200:224].all()                         # where the wall was seen: moved in
+    assert not known.any()
+
+
+def test_region_lags_need_the_free_space_test():
+    assert check(lags=(), region_lags=(0.25,)).region_lags_s == ()
+
+
+def test_a_fast_turn_makes_no_region_but_keeps_its_evidence():
+    """At 3 rad/s a depth image taken 20 ms from its colour lies ~31 px off where the pose puts it, more than
+    the regions' opening removes: such a frame's evidence still keeps flagged pixels, but makes no region."""
+    box = (200, 100, 360, 400)
+    inner = (slice(box[1] + 10, box[3] - 10), slice(box[0] + 10, box[2] - 10))
+    found = {}
+    for turn_rad in (0.0, 0.1):                                   # over the last 1/30 s: 0 or 3 rad/s
+        fs = check()
+        fs.remember(0.0, wall(), pose_cw(0.0))
+        fs.remember(0.5, wall(), pose_cw(0.0))
+        turned = pose_cw(0.0)
+        turned[:3, :3] = cv2.Rodrigues(np.array([0.0, turn_rad, 0.0]))[0]
+        fs.remember(1.0 - 1 / 30, blind(), turned)                # the frame just before: no depth, its pose only
+        found[turn_rad] = fs.keyframe(None, 1.0, wall(box), pose_cw(0.0))
+    assert found[0.0].region[inner].all()
+    moving, known, region = found[0.1]
+    assert moving[inner].all() and known[inner].all() and not region.any()

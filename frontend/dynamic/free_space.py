@@ -38,6 +38,18 @@ Why the numbers:
   misplaced by a pose error, rolling shutter or the 20 ms between fr1's colour and depth images looks moved
   only along a band narrower than the window; with the motion-capture poses on fr1/rpy-400 without people
   one keyframe in 67 had such a region (5,500 px).
+- ``region_lags_s`` 0.25 s (``dynamic.mask_region_lags_s``): on a fast turn the long lags no longer see the
+  part of the view a person has just walked into (fr1/rpy turns 14 degrees of its 62 in 0.25 s at the median
+  rate, 56 in 1 s). A frame 0.25 s back does, and a walker at 1.2 m/s has moved 0.3 m since (the margin at
+  2 m: 0.15 m). It adds to the regions only: inside a walker it may see the body where it is now, which
+  must not count as "known unmoved" (``known`` and ``moving`` stay the long lags'). Composited ``border``
+  on fr1/rpy: keyframe-mask recall 0.47 -> 0.59, the person walking in past the left border while the
+  detector misses them (frames 252-255: 0.44 / 0.65 / 0.56 -> 0.76 / 0.88 / 0.71).
+- Regions only from frame pairs that both turn slowly enough (``_steady``): a depth image is taken up to
+  20 ms from its colour (TUM pairs them within 0.02 s), so at angular speed w a surface lies ``w * 0.02 *
+  f`` px off where the pose puts it; above the 20 px window (1.9 rad/s at 525 px; 3 % of fr1/rpy's frames,
+  none of Bonn crowd's) whole surfaces look moved, wider than the opening removes (a 30 x 70 px region on
+  the person behind the monitor of composited ``stand_walk``, keyframe 121).
 - The moving evidence is grown by ``_GROW_CELLS`` (the band the min filter leaves blind, and a cell), each
   step only into a neighbour whose depth is within the margin: the blind band lies on the surface that
   moved, not on the wall or desk beside it, which stay testable (grown in every direction, the evidence
@@ -55,6 +67,7 @@ import cv2
 import numpy as np
 
 from slam.core.camera import PinholeCamera
+from slam.core.geometry import rotation_angle_deg
 
 _STEP = 4            # evidence on every 4th pixel in each direction
 _GROW_CELLS = 6      # moving evidence grown by 6 cells (24 px): the min filter's blind band and a cell
@@ -62,6 +75,8 @@ _NOISE_COEFF = 0.004  # sigma_z = 0.004 z^2 (backend.depth_noise_coeff, fitted o
 _FAR = np.float32(1e6)  # invalid depth in the min filter
 _OPEN_CELLS = 5      # a moving region is wider than 5 cells (20 px, the min filter's window) everywhere
 _MIN_REGION = 0.01   # ... and covers 1 % of the image (3,000 px at VGA; a person whole at 4 m: ~12,000)
+_DEPTH_COLOUR_S = 0.02  # a depth image is taken up to this long from its colour image (TUM's pairing bound)
+_TURN_GAP_S = 0.1    # a turn rate needs the frame before within this (3 frames at 30 Hz)
 
 
 class Evidence(NamedTuple):
@@ -78,6 +93,7 @@ class _Reference:
     depth: np.ndarray
     nearest: np.ndarray
     T_cw: np.ndarray
+    steady: bool = True     # turning slowly enough that its depth lies where its pose puts it (_steady)
 
 
 @dataclass
@@ -101,10 +117,13 @@ class FreeSpaceCheck:
     pixels against the frames ``lags_s`` before it at once and against the frames ``lags_s`` after it as
     they arrive (see the module doc)."""
 
-    def __init__(self, camera: PinholeCamera, lags_s: tuple[float, ...], margin_m: float, window_px: int):
+    def __init__(self, camera: PinholeCamera, lags_s: tuple[float, ...], margin_m: float, window_px: int,
+                 region_lags_s: tuple[float, ...] = ()):
         self.camera = camera
         self.lags_s = tuple(sorted(float(v) for v in lags_s))
+        self.region_lags_s = tuple(sorted(float(v) for v in region_lags_s)) if self.lags_s else ()
         self.margin_m = float(margin_m)
+        self._window_px = float(window_px)
         radius = max(1, int(np.ceil(window_px / (2 * _STEP))))
         self._kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
         self._frames: deque[_Reference] = deque()
@@ -134,11 +153,21 @@ class FreeSpaceCheck:
         record = _Keyframe(key, float(timestamp), tuple(depth.shape), valid, np.where(valid, z, np.nan),
                            points @ T_wc[:3, :3].T + T_wc[:3, 3],
                            np.zeros(n, bool), np.zeros(n, bool), list(self.lags_s))
-        for reference in self._earlier(timestamp):
-            self._compare(record, reference)
-        record.moved_before = record.moving.copy()
+        steady = self._steady(timestamp, T_cw)
+        record.moved_before = np.zeros(n, bool)
+        for reference in self._earlier(timestamp, self.lags_s):
+            known, moving = self._test(record, reference)
+            record.known |= known
+            record.moving |= moving
+            if steady and reference.steady:
+                record.moved_before |= moving
+        # The short lags add to the moving regions only (see region_lags_s in the module doc): inside a
+        # walker they may see the body where it is now, which must not count as "known unmoved".
+        for reference in self._earlier(timestamp, self.region_lags_s):
+            if steady and reference.steady:
+                record.moved_before |= self._test(record, reference)[1]
         self._pending.append(record)
-        return self._pixels(record) if record.known.any() else None
+        return self._pixels(record) if record.known.any() or record.moved_before.any() else None
 
     def remember(self, timestamp: float, depth: np.ndarray, T_cw: np.ndarray) -> list[tuple[Any, Evidence]]:
         """A tracked frame: kept while it may serve as an earlier frame, and compared with the pending
@@ -148,7 +177,8 @@ class FreeSpaceCheck:
             return []
         grid = np.asarray(depth, np.float32)[::_STEP, ::_STEP]
         grid = np.where(np.isfinite(grid) & (grid > 0), grid, _FAR)
-        reference = _Reference(float(timestamp), grid, cv2.erode(grid, self._kernel), np.asarray(T_cw, float))
+        reference = _Reference(float(timestamp), grid, cv2.erode(grid, self._kernel), np.asarray(T_cw, float),
+                               self._steady(timestamp, T_cw))
         self._frames.append(reference)
         horizon = timestamp - self.lags_s[-1] * 1.5
         while self._frames and self._frames[0].timestamp < horizon:
@@ -166,6 +196,13 @@ class FreeSpaceCheck:
 
     def _compare(self, record: _Keyframe, ref: _Reference) -> bool:
         """Fold one frame's evidence into a keyframe's; True if it knew any cell."""
+        known, moving = self._test(record, ref)
+        record.moving |= moving
+        record.known |= known
+        return bool(known.any())
+
+    def _test(self, record: _Keyframe, ref: _Reference) -> tuple[np.ndarray, np.ndarray]:
+        """Per keyframe cell: whether ``ref`` can tell, and whether it saw the cell's space empty."""
         p = record.world @ ref.T_cw[:3, :3].T + ref.T_cw[:3, 3]
         gh, gw = ref.depth.shape
         cam = self.camera
@@ -182,9 +219,7 @@ class FreeSpaceCheck:
         # Behind the other frame's surface: hidden from it, no evidence. In front of the nearest surface
         # near where it lands: that space was empty then.
         known = inside & (seen < _FAR) & (p[:, 2] <= seen + margin)
-        record.moving |= known & (p[:, 2] < nearest - margin)
-        record.known |= known
-        return bool(known.any())
+        return known, known & (p[:, 2] < nearest - margin)
 
     def _pixels(self, record: _Keyframe) -> Evidence:
         moving = np.zeros(record.valid.shape, np.uint8)
@@ -205,6 +240,18 @@ class FreeSpaceCheck:
         def up(cells: np.ndarray) -> np.ndarray:
             return cv2.resize(cells, full, interpolation=cv2.INTER_NEAREST).astype(bool)
         return Evidence(up(moving), up(known), up(region))
+
+    def _steady(self, timestamp: float, T_cw: np.ndarray) -> bool:
+        """Whether a frame turns slowly enough (against the frame remembered before it) that its depth, taken
+        up to ``_DEPTH_COLOUR_S`` from the colour its pose was tracked on, shifts by less than the min
+        filter's window: a faster turn misplaces whole surfaces by more than the regions' opening removes.
+        Unknown (no frame just before) counts as steady."""
+        if not self._frames or not 0 < timestamp - self._frames[-1].timestamp <= _TURN_GAP_S:
+            return True
+        last = self._frames[-1]
+        turn = np.radians(float(rotation_angle_deg(np.asarray(T_cw)[:3, :3] @ last.T_cw[:3, :3].T)))
+        shift_px = turn / (timestamp - last.timestamp) * _DEPTH_COLOUR_S * max(self.camera.fx, self.camera.fy)
+        return shift_px <= self._window_px
 
     def _margin(self, z: np.ndarray) -> np.ndarray:
         """How far (m) a surface at depth ``z`` may lie from another before it counts: ``margin_m`` + 3 sigma_z."""
@@ -234,10 +281,10 @@ class FreeSpaceCheck:
             grown |= added
         return grown
 
-    def _earlier(self, timestamp: float) -> list[_Reference]:
+    def _earlier(self, timestamp: float, lags_s: tuple[float, ...]) -> list[_Reference]:
         """Per lag, the remembered frame nearest ``timestamp - lag``, at least half the lag back."""
         chosen: list[_Reference] = []
-        for lag in self.lags_s:
+        for lag in lags_s:
             candidates = [f for f in self._frames if f.timestamp <= timestamp - lag / 2]
             if not candidates:
                 continue

@@ -198,7 +198,7 @@ def compose_mask(parts: MaskParts) -> tuple[Optional[np.ndarray], Optional[np.nd
         moving, known, moved_region = parts.free_space
         if moved_region.any():
             mask[moved_region] = np.maximum(mask[moved_region], _MOVED_REGION_PROB)
-        unmoved = (mask >= 0.5) & known & ~moving
+        unmoved = (mask >= 0.5) & known & ~moving & ~moved_region   # the short lags' regions: moving too
         if unmoved.any():
             mask[unmoved] = 0.0
             still_people = unmoved if still_people is None else still_people | unmoved

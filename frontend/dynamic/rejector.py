@@ -84,7 +84,7 @@ class DynamicRejector:
         self._people: tuple[list, np.ndarray] = ([], np.zeros(0, bool))   # the frame's person boxes, who stands
         self._keyframe_masks = KeyframeMaskLedger(cfg.still_window_s)
         self._free_space = FreeSpaceCheck(camera, tuple(cfg.mask_free_space_lags_s), cfg.mask_free_space_margin_m,
-                                          cfg.mask_free_space_window_px)
+                                          cfg.mask_free_space_window_px, tuple(cfg.mask_region_lags_s))
         self.people_still = 0       # people standing still in the last frame (region_motion)
         # Earlier keyframes' masks composed again after the last frame: a person in them was found
         # standing still (keyframe_masks); the run's outputs rewrite those keyframes' mask files.

@@ -245,6 +245,10 @@ class DynamicConfig(ConfigSection):
     """The keyframe masks keep as moving only pixels that stand where a frame this long before saw a surface
     clearly behind them, where such a frame can tell (frontend/dynamic/free_space.py: 0.5 / 1.0 s, a slow
     walker's 0.25 / 0.5 m). Empty = off. Tracking and the map are unaffected."""
+    mask_region_lags_s: list[Lag] = Field(default_factory=lambda: [0.25])
+    """Frames this long before a keyframe add to its moving *regions* only (free space; never "unmoved": 0.25 s
+    back a walker still covers much of where they are). On a fast turn they still see the part of the view
+    the long lags no longer do (fr1/rpy's median turn: 14 degrees in 0.25 s, 56 in 1 s). Needs the lags above."""
     mask_free_space_margin_m: float = Field(0.1, ge=0)
     """A point counts as in front of the earlier surface by more than this plus 3 sigma of depth noise."""
     mask_free_space_window_px: int = Field(20, ge=1)
