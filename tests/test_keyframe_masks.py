@@ -11,7 +11,7 @@ import pytest
 from frontend.dynamic import RevisedMask
 from frontend.dynamic.base import DetectorDefaults, MethodOutput
 from frontend.dynamic.keyframe_masks import KeyframeMaskLedger, MaskParts, compose_mask, still_region
-from frontend.dynamic.region_motion import RegionMotion
+from frontend.dynamic.region_motion import PersonTrack, RegionMotion
 from slam.run.run_artifacts import MASK_DIR, STILL_SUFFIX, RunArtifacts
 
 SHAPE = (48, 64)
@@ -75,17 +75,32 @@ def test_the_keyframes_of_the_first_window_are_revised_when_the_person_is_found_
     assert not any(revisions[first_still + 1:])
 
 
-def test_a_keyframe_older_than_the_window_and_another_persons_track_are_not_revised():
+def test_a_keyframe_older_than_the_tracks_span_and_another_persons_track_are_not_revised():
     ledger = KeyframeMaskLedger(0.5)
-    other, person = object(), object()
+    other, person = PersonTrack([0.4]), PersonTrack([0.0])
     parts = _parts(_box_mask(PERSON), np.zeros(SHAPE, np.float32))
     assert ledger.advance(0.0, [person], np.array([False]), (0, parts, [PERSON])) == []
     assert ledger.advance(0.4, [other], np.array([True]), None) == []          # not the keyframe's person
-    assert ledger.advance(0.6, [person], np.array([True]), None) == []         # keyframe 0 is 0.6 s old: final
+    person.times[:] = [0.1, 0.6]                  # the span kept at 0.6 s starts after keyframe 0
+    assert ledger.advance(0.6, [person], np.array([True]), None) == []         # keyframe 0 is final
     ledger.reset()
+    person.times[:] = [0.0]
     assert ledger.advance(0.0, [person], np.array([False]), (3, parts, [PERSON])) == []
+    person.times[:] = [0.0, 0.5]
     (revised,) = ledger.advance(0.5, [person], np.array([True]), None)
     assert revised.frame_index == 3 and revised.timestamp == 0.0
+
+
+def test_a_keyframe_at_the_start_of_the_tracks_span_is_revised_though_a_window_and_a_bit_old():
+    """A track keeps the newest entry at least a window old: a stillness found now covers a keyframe
+    0.500012 s back (composited two_walk, keyframe 39), which a cut at exactly the window dropped."""
+    ledger = KeyframeMaskLedger(0.5)
+    person = PersonTrack([0.0])
+    parts = _parts(_box_mask(PERSON), np.zeros(SHAPE, np.float32))
+    assert ledger.advance(0.0, [person], np.array([False]), (39, parts, [PERSON])) == []
+    person.times[:] = [0.0, 0.25, 0.500012]
+    (revised,) = ledger.advance(0.500012, [person], np.array([True]), None)
+    assert revised.frame_index == 39
     # Off (still_window_s = 0): nothing is kept, nothing revised.
     off = KeyframeMaskLedger(0.0)
     assert off.advance(0.0, [person], np.array([False]), (0, parts, [PERSON])) == []

@@ -37,6 +37,7 @@ from frontend.dynamic.base import MethodOutput
 from frontend.dynamic.box_depth_segmentation import person_layer
 from frontend.dynamic.free_space import Evidence
 from frontend.dynamic.fusion import fuse
+from frontend.dynamic.region_motion import PersonTrack
 
 Box = tuple[int, int, int, int]          # x0, y0, x1, y1 whole pixels
 _MOVED_REGION_PROB = 0.9                 # a region the free-space test saw move, as region_motion's regions
@@ -213,7 +214,7 @@ class _KeyframeRecord:
     timestamp: float
     parts: MaskParts
     boxes: list[Box]
-    tracks: list[object]       # per box: the RegionMotion track it belongs to (None: not followed)
+    tracks: list[Optional[PersonTrack]]   # per box: the RegionMotion track it belongs to (None: not followed)
     still: np.ndarray          # per box: standing still, as known so far
 
 
@@ -227,20 +228,26 @@ class KeyframeMaskLedger:
     def reset(self) -> None:
         self._records = []
 
-    def advance(self, timestamp: float, tracks: list[object], still: np.ndarray,
+    def advance(self, timestamp: float, tracks: list[Optional[PersonTrack]], still: np.ndarray,
                 keyframe: Optional[tuple[int, MaskParts, list[Box]]],
-                also_still: Sequence[object] = ()) -> list[RevisedMask]:
+                also_still: Sequence[PersonTrack] = ()) -> list[RevisedMask]:
         """After a frame: ``tracks`` and ``still`` per person of this frame (in box order); ``keyframe``
         (frame index, mask parts, the people's boxes) when the frame is a keyframe; ``also_still``: tracks
         found still over their whole (short) life as they ended (``RegionMotion.ended_still``). Returns
         the earlier keyframes whose masks change because a person in them is now found standing still."""
         confirmed = [t for t, s in zip(tracks, still) if s and t is not None] + list(also_still)
-        # A stillness found now covers [timestamp - window, timestamp]; older keyframes are final.
-        self._records = [r for r in self._records if r.timestamp >= timestamp - self.window_s]
+        # A stillness found now covers the confirming track's stored span, from its oldest entry (the newest
+        # one at least a window old: RegionMotion.commit) to now; a keyframe older than every live track's
+        # span is final. Dropping by the window alone lost a keyframe exactly at the span's start (composited
+        # two_walk, keyframe 39: 0.500012 s before the frame that found its person still).
+        spans = [t.times[0] for t in [*tracks, *also_still] if t is not None and t.times]
+        horizon = min([timestamp - self.window_s, *spans])
+        self._records = [r for r in self._records if r.timestamp >= horizon]
         revised = []
         for record in self._records:
             newly = [k for k, t in enumerate(record.tracks)
-                     if not record.still[k] and t is not None and any(t is c for c in confirmed)]
+                     if not record.still[k] and t is not None and t.times and record.timestamp >= t.times[0]
+                     and any(t is c for c in confirmed)]
             if not newly:
                 continue
             record.still[newly] = True

@@ -58,7 +58,7 @@ _PIXEL_STEP = 2
 
 
 @dataclass
-class _Track:
+class PersonTrack:
     times: list[float] = field(default_factory=list)
     centres: list[np.ndarray] = field(default_factory=list)   # world coordinates
 
@@ -88,10 +88,10 @@ class RegionMotion:
     def __init__(self, window_s: float, max_move_m: float):
         self.window_s = float(window_s)
         self.max_move_m = float(max_move_m)
-        self._tracks: list[_Track] = []
+        self._tracks: list[PersonTrack] = []
         # The current frame's people (camera-frame centres) and the track each continues, until
         # ``commit`` places them in the world with the frame's tracked pose.
-        self._pending: list[tuple[int, np.ndarray, Optional[_Track]]] = []
+        self._pending: list[tuple[int, np.ndarray, Optional[PersonTrack]]] = []
         self._people = 0
         self._time = 0.0
         # Tracks that ended in the last ``commit`` (the box was not seen again) without ever moving faster
@@ -99,7 +99,7 @@ class RegionMotion:
         # went on something static (YOLOX-Nano's "person" on fr1/rpy's desk, frame 395, score 0.35) or a
         # person who stood briefly. Tracking has treated them as moving (it must decide at once); the
         # keyframe masks, which can wait, are revised (keyframe_masks).
-        self.ended_still: list[_Track] = []
+        self.ended_still: list[PersonTrack] = []
 
     @property
     def enabled(self) -> bool:
@@ -132,12 +132,12 @@ class RegionMotion:
             self._pending.append((int(k), centre, track))
         return still
 
-    def commit(self, T_cw: Optional[np.ndarray]) -> list[Optional[_Track]]:
+    def commit(self, T_cw: Optional[np.ndarray]) -> list[Optional[PersonTrack]]:
         """After tracking: the frame's people join their tracks at the tracked pose; without a pose
         every track ends (no world position to compare with). Returns each person's track, in the order
         ``classify`` got them (None: no depth, or no pose); a track is the same object while it goes on."""
         pending, self._pending = self._pending, []
-        per_person: list[Optional[_Track]] = [None] * self._people
+        per_person: list[Optional[PersonTrack]] = [None] * self._people
         before = self._tracks
         if T_cw is None:
             self._tracks = []
@@ -145,7 +145,7 @@ class RegionMotion:
             return per_person
         world, tracks = _to_world(T_cw), []
         for k, centre, track in pending:
-            track = track or _Track()
+            track = track or PersonTrack()
             track.times.append(self._time)
             track.centres.append(world(centre))
             # Keep what the window needs: the newest entry at least window_s old and everything after it.
@@ -158,12 +158,12 @@ class RegionMotion:
         self.ended_still = [t for t in before if not any(t is n for n in tracks) and self._still_over_life(t)]
         return per_person
 
-    def finish(self) -> list[_Track]:
+    def finish(self) -> list[PersonTrack]:
         """At the end of a run: the tracks still going that are shorter than a window and never moved
         faster than the bound (``ended_still``'s rule: the run ending ends them)."""
         return [t for t in self._tracks if self._still_over_life(t)]
 
-    def _still_over_life(self, track: _Track) -> bool:
+    def _still_over_life(self, track: PersonTrack) -> bool:
         """A track shorter than a window (longer ones are judged frame by frame) that lasted at least
         ``_MIN_LIFE_S`` and stayed within the speed bound over its life."""
         if not self.enabled or len(track.times) < 2:
@@ -174,7 +174,7 @@ class RegionMotion:
         moved = np.linalg.norm(np.asarray(track.centres) - track.centres[-1], axis=1)
         return bool(np.max(moved) < self.max_move_m * life / self.window_s)
 
-    def _stands_still(self, track: _Track, centre_w: np.ndarray, now: float) -> bool:
+    def _stands_still(self, track: PersonTrack, centre_w: np.ndarray, now: float) -> bool:
         if not track.times or track.times[0] > now - self.window_s:
             return False                                  # not followed for a whole window yet
         moved = np.linalg.norm(np.asarray(track.centres) - centre_w, axis=1)
