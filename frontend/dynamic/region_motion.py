@@ -59,6 +59,8 @@ _PIXEL_STEP = 2
 
 @dataclass
 class PersonTrack:
+    """One person's centre in the world over the last window (``RegionMotion``; the keyframe-mask ledger
+    reads its span). The same object while the person is followed."""
     times: list[float] = field(default_factory=list)
     centres: list[np.ndarray] = field(default_factory=list)   # world coordinates
 
