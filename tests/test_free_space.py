@@ -183,8 +183,12 @@ def test_a_short_lag_never_shows_a_surface_unmoved():
     assert not known.any()
 
 
-def test_region_lags_need_the_free_space_test():
+def test_region_lags_need_the_free_space_test_and_a_long_one_is_remembered():
     assert check(lags=(), region_lags=(0.25,)).region_lags_s == ()
+    fs = check(region_lags=(2.0,))                               # longer than the long lags: frames kept for it
+    for k in range(0, 100):
+        fs.remember(k / 30, wall(), pose_cw(0.0))
+    assert fs._frames[0].timestamp <= 99 / 30 - 2.0
 
 
 def test_a_fast_turn_makes_no_region_but_keeps_its_evidence():

@@ -180,7 +180,7 @@ class FreeSpaceCheck:
         reference = _Reference(float(timestamp), grid, cv2.erode(grid, self._kernel), np.asarray(T_cw, float),
                                self._steady(timestamp, T_cw))
         self._frames.append(reference)
-        horizon = timestamp - self.lags_s[-1] * 1.5
+        horizon = timestamp - max(self.lags_s + self.region_lags_s) * 1.5
         while self._frames and self._frames[0].timestamp < horizon:
             self._frames.popleft()
         changed = []
