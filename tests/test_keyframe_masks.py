@@ -77,16 +77,17 @@ def test_the_keyframes_of_the_first_window_are_revised_when_the_person_is_found_
 
 def test_a_keyframe_older_than_the_tracks_span_and_another_persons_track_are_not_revised():
     ledger = KeyframeMaskLedger(0.5)
-    other, person = PersonTrack([0.4]), PersonTrack([0.0])
+    other, person = PersonTrack([0.4], still_since=0.4), PersonTrack([0.0])
     parts = _parts(_box_mask(PERSON), np.zeros(SHAPE, np.float32))
     assert ledger.advance(0.0, [person], np.array([False]), (0, parts, [PERSON])) == []
     assert ledger.advance(0.4, [other], np.array([True]), None) == []          # not the keyframe's person
     person.times[:] = [0.1, 0.6]                  # the span kept at 0.6 s starts after keyframe 0
+    person.still_since = 0.1
     assert ledger.advance(0.6, [person], np.array([True]), None) == []         # keyframe 0 is final
     ledger.reset()
-    person.times[:] = [0.0]
+    person.times[:], person.still_since = [0.0], None
     assert ledger.advance(0.0, [person], np.array([False]), (3, parts, [PERSON])) == []
-    person.times[:] = [0.0, 0.5]
+    person.times[:], person.still_since = [0.0, 0.5], 0.0
     (revised,) = ledger.advance(0.5, [person], np.array([True]), None)
     assert revised.frame_index == 3 and revised.timestamp == 0.0
 
@@ -98,13 +99,30 @@ def test_a_keyframe_at_the_start_of_the_tracks_span_is_revised_though_a_window_a
     person = PersonTrack([0.0])
     parts = _parts(_box_mask(PERSON), np.zeros(SHAPE, np.float32))
     assert ledger.advance(0.0, [person], np.array([False]), (39, parts, [PERSON])) == []
-    person.times[:] = [0.0, 0.25, 0.500012]
+    person.times[:], person.still_since = [0.0, 0.25, 0.500012], 0.0
     (revised,) = ledger.advance(0.500012, [person], np.array([True]), None)
     assert revised.frame_index == 39
     # Off (still_window_s = 0): nothing is kept, nothing revised.
     off = KeyframeMaskLedger(0.0)
     assert off.advance(0.0, [person], np.array([False]), (0, parts, [PERSON])) == []
     assert off.advance(0.1, [person], np.array([True]), None) == []
+
+
+def test_a_stillness_revises_only_the_keyframes_of_the_span_it_was_shown_over():
+    """A track keeps a surface window (1 s) for the surface's test; the centre's test shows the person still
+    over the last 0.5 s only, so a keyframe 0.8 s back, when they may still have walked, stays as it was,
+    while one 0.3 s back is revised."""
+    ledger = KeyframeMaskLedger(0.5)
+    person = PersonTrack([0.0])
+    parts = _parts(_box_mask(PERSON), np.zeros(SHAPE, np.float32))
+    assert ledger.advance(0.2, [person], np.array([False]), (6, parts, [PERSON])) == []
+    assert ledger.advance(0.7, [person], np.array([False]), (21, parts, [PERSON])) == []
+    person.times[:], person.still_since = [0.0, 0.2, 0.5, 0.7, 1.0], 0.5
+    (revised,) = ledger.advance(1.0, [person], np.array([True]), None)
+    assert revised.frame_index == 21
+    person.still_since = 0.0                     # now shown still over the whole span: keyframe 6 as well
+    (revised,) = ledger.advance(1.03, [person], np.array([True]), None)
+    assert revised.frame_index == 6
 
 
 def test_a_revision_rewrites_the_keyframes_mask_files(tmp_path):

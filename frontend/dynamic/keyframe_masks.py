@@ -236,9 +236,9 @@ class KeyframeMaskLedger:
         found still over their whole (short) life as they ended (``RegionMotion.ended_still``). Returns
         the earlier keyframes whose masks change because a person in them is now found standing still."""
         confirmed = [t for t, s in zip(tracks, still) if s and t is not None] + list(also_still)
-        # A stillness found now covers the confirming track's stored span, from its oldest entry (the newest
-        # one at least a window old: RegionMotion.commit) to now; a keyframe older than every live track's
-        # span is final. Dropping by the window alone lost a keyframe exactly at the span's start (composited
+        # A stillness found now covers the span the confirming track was shown still over (``still_since``:
+        # the newest entry at least a window old, or a surface window for the surface's test) to now; a
+        # keyframe older than every live track's stored span is final. Dropping by the window alone lost a keyframe exactly at the span's start (composited
         # two_walk, keyframe 39: 0.500012 s before the frame that found its person still).
         spans = [t.times[0] for t in [*tracks, *also_still] if t is not None and t.times]
         horizon = min([timestamp - self.window_s, *spans])
@@ -246,8 +246,8 @@ class KeyframeMaskLedger:
         revised = []
         for record in self._records:
             newly = [k for k, t in enumerate(record.tracks)
-                     if not record.still[k] and t is not None and t.times and record.timestamp >= t.times[0]
-                     and any(t is c for c in confirmed)]
+                     if not record.still[k] and t is not None and t.still_since is not None
+                     and record.timestamp >= t.still_since and any(t is c for c in confirmed)]
             if not newly:
                 continue
             record.still[newly] = True

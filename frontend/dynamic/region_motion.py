@@ -23,6 +23,15 @@ the slowest deliberate walking pace (~0.5-0.6 m/s; typical 1.2-1.4 m/s), while t
 person (1-3 cm) and the jitter of a torso's median depth stay well below 0.15 m. A person who starts
 walking at 1 m/s counts as moving again after ~0.15 s (5 frames at 30 Hz).
 
+**A second witness: the surface** (``surface_drift``). Behind a monitor the torso centre is the monitor
+on some frames and the person on others, so it jumps and the person is never found still. With the
+frame's point tracks (flow_epipolar's) a person whose centre jumped continues the track their surface's
+tracks came from, and a person whose surface (the median step of the tracks on them, summed) stayed
+within ``max_move_m`` over *twice* the window, with few of those tracks moving, stands still too. Twice,
+because a box's person layer also holds what stands at their depth beside them, which can outvote a
+walker's own tracks while little of the walker shows (see ``surface_window_s``). A stillness covers the
+span it was shown over (``PersonTrack.still_since``), the keyframes the ledger revises.
+
 The safe side everywhere: a person is *moving* unless shown still -- a new box, one not matched to last
 frame's (the detector missed them, a second person stepped in front), a frame without a predicted pose,
 or after a lost frame. Everything is a function of the frames and poses only: deterministic.
@@ -36,6 +45,7 @@ import cv2
 import numpy as np
 
 from frontend.dynamic.base import keypoints_in_mask
+from frontend.dynamic.surface_drift import MIN_TRACKS, FrameTracks, PersonView, SurfaceTracker, surface_still
 from slam.core.camera import PinholeCamera
 
 _MATCH_M = 0.5
@@ -60,9 +70,24 @@ _PIXEL_STEP = 2
 @dataclass
 class PersonTrack:
     """One person's centre in the world over the last window (``RegionMotion``; the keyframe-mask ledger
-    reads its span). The same object while the person is followed."""
+    reads its span). The same object while the person is followed. Beside the centres, the person's surface
+    followed by the point tracks on it (``surface_drift``): a position per frame (world), advanced by each
+    frame's measured step (``measured``; the share of moved tracks in ``shares``, NaN where unmeasured)."""
     times: list[float] = field(default_factory=list)
     centres: list[np.ndarray] = field(default_factory=list)   # world coordinates
+    surface: list[np.ndarray] = field(default_factory=list)
+    measured: list[bool] = field(default_factory=list)
+    shares: list[float] = field(default_factory=list)
+    view: Optional[PersonView] = None                         # the box and layer of its last frame
+    # The start of the span over which the person was last shown still (None: not yet): the keyframes from
+    # then on hold them standing (keyframe_masks).
+    still_since: Optional[float] = None
+
+    def start(self, now: float, span_s: float) -> Optional[int]:
+        """Index of the newest entry at least ``span_s`` before ``now`` (where a span that long begins);
+        None when the track is younger."""
+        old = [i for i, t in enumerate(self.times) if t <= now - span_s + 1e-9]
+        return old[-1] if old else None
 
 
 def box_centre(box: tuple[int, int, int, int], depth: np.ndarray, camera: PinholeCamera) -> Optional[np.ndarray]:
@@ -87,15 +112,24 @@ def box_centre(box: tuple[int, int, int, int], depth: np.ndarray, camera: Pinhol
 class RegionMotion:
     """Follows people's centres in the world and says who stands still (see the module doc)."""
 
-    def __init__(self, window_s: float, max_move_m: float):
+    def __init__(self, window_s: float, max_move_m: float, camera: Optional[PinholeCamera] = None):
         self.window_s = float(window_s)
         self.max_move_m = float(max_move_m)
+        self.camera = camera              # for the surfaces' steps (surface_drift); None: centres only
+        # The surface's evidence must hold twice as long as the centre's: a box's person layer also holds
+        # what stands at the person's depth beside them, which can outvote a walker's own tracks while the
+        # walker shows little of themselves (composited walk_stand, frames 189-193: a strip of legs at the
+        # image's top over desk clutter at the same depth, found still 0.5 s after the track began).
+        self.surface_window_s = 2.0 * self.window_s
         self._tracks: list[PersonTrack] = []
-        # The current frame's people (camera-frame centres) and the track each continues, until
+        # The current frame's people (camera-frame centres, views) and the track each continues, until
         # ``commit`` places them in the world with the frame's tracked pose.
-        self._pending: list[tuple[int, np.ndarray, Optional[PersonTrack]]] = []
+        self._pending: list[tuple[int, np.ndarray, Optional[PersonTrack], Optional[PersonView]]] = []
         self._people = 0
         self._time = 0.0
+        self._surface: Optional[SurfaceTracker] = None     # this frame's tracks against the previous depth
+        self._flow: Optional[FrameTracks] = None
+        self._prev: Optional[tuple[np.ndarray, np.ndarray]] = None   # the last committed (depth, T_cw)
         # Tracks that ended in the last ``commit`` (the box was not seen again) without ever moving faster
         # than the bound over their whole life, though shorter than a window: a detection that came and
         # went on something static (YOLOX-Nano's "person" on fr1/rpy's desk, frame 395, score 0.35) or a
@@ -108,13 +142,19 @@ class RegionMotion:
         return self.window_s > 0
 
     def reset(self) -> None:
-        self._tracks, self._pending = [], []
+        self._tracks, self._pending, self._prev = [], [], None
 
     def classify(self, centres: list[Optional[np.ndarray]], predicted_T_cw: Optional[np.ndarray],
-                 timestamp: float) -> np.ndarray:
-        """Per person (camera-frame centre, None without depth): True for those who stand still."""
+                 timestamp: float, views: Optional[list[PersonView]] = None,
+                 flow: Optional[FrameTracks] = None) -> np.ndarray:
+        """Per person (camera-frame centre, None without depth): True for those who stand still. With
+        ``views`` (each person's box and layer) and ``flow`` (the frame's point tracks and depth), a person
+        whose centre jumped continues the track their surface's tracks came from, and a person whose
+        surface stayed still over the window stands still too (``surface_drift``)."""
         still = np.zeros(len(centres), bool)
         self._time, self._pending, self._people = timestamp, [], len(centres)
+        self._flow = flow if self.camera is not None and views is not None else None
+        self._surface = None if self._flow is None or self._prev is None else SurfaceTracker(self._flow, self._prev[0])
         if not self.enabled:
             return still
         world = None if predicted_T_cw is None else _to_world(predicted_T_cw)
@@ -123,6 +163,7 @@ class RegionMotion:
             centre = centres[k]
             if centre is None:
                 continue
+            view = None if views is None else views[k]
             track = None
             if world is not None and free:
                 w = world(centre)
@@ -130,9 +171,26 @@ class RegionMotion:
                 j = int(np.argmin(dist))
                 if dist[j] < _MATCH_M:
                     track = free.pop(j)
-                    still[k] = self._stands_still(track, w, timestamp)
-            self._pending.append((int(k), centre, track))
+                else:
+                    track = self._continued_surface(free, view)
+                if track is not None:
+                    since = [track.times[i] for i in (self._stands_still(track, w, timestamp),
+                                                      self._surface_still(track, timestamp)) if i is not None]
+                    still[k] = bool(since)
+                    if since:
+                        track.still_since = min(since)
+            self._pending.append((int(k), centre, track, view))
         return still
+
+    def _continued_surface(self, free: list[PersonTrack], view: Optional[PersonView]) -> Optional[PersonTrack]:
+        """The free track most of whose last frame's surface tracks end on ``view`` (at least
+        ``MIN_TRACKS``), taken from ``free``; None without one."""
+        if self._surface is None or view is None:
+            return None
+        counts = [0 if t.view is None else int(np.count_nonzero(self._surface.shared(t.view, view))) for t in free]
+        if not counts or max(counts) < MIN_TRACKS:
+            return None
+        return free.pop(int(np.argmax(counts)))
 
     def commit(self, T_cw: Optional[np.ndarray]) -> list[Optional[PersonTrack]]:
         """After tracking: the frame's people join their tracks at the tracked pose; without a pose
@@ -141,29 +199,47 @@ class RegionMotion:
         pending, self._pending = self._pending, []
         per_person: list[Optional[PersonTrack]] = [None] * self._people
         before = self._tracks
+        prev, self._prev = self._prev, None if T_cw is None or self._flow is None else (self._flow.depth, T_cw)
         if T_cw is None:
             self._tracks = []
-            self.ended_still = [t for t in before if self._still_over_life(t)]
+            self.ended_still = self._still_over_lives(before)
             return per_person
         world, tracks = _to_world(T_cw), []
-        for k, centre, track in pending:
+        for k, centre, track, view in pending:
             track = track or PersonTrack()
+            position = world(centre)
+            step = None
+            if track.view is not None and view is not None and self._surface is not None and prev is not None:
+                step = self._surface.step(self._surface.shared(track.view, view), self.camera, prev[1], T_cw)
             track.times.append(self._time)
-            track.centres.append(world(centre))
-            # Keep what the window needs: the newest entry at least window_s old and everything after it.
-            old = [i for i, t in enumerate(track.times) if t <= self._time - self.window_s]
-            if old:
-                del track.times[:old[-1]], track.centres[:old[-1]]
+            track.centres.append(position)
+            track.surface.append(track.surface[-1] + step.displacement if step is not None
+                                 else track.surface[-1] if track.surface else position)
+            track.measured.append(step is not None)
+            track.shares.append(np.nan if step is None else step.moved_share)
+            track.view = view
+            # Keep what the tests need: the newest entry at least a surface window old and everything after.
+            first = track.start(self._time, self.surface_window_s)
+            if first:
+                for series in (track.times, track.centres, track.surface, track.measured, track.shares):
+                    del series[:first]
             tracks.append(track)
             per_person[k] = track
         self._tracks = tracks
-        self.ended_still = [t for t in before if not any(t is n for n in tracks) and self._still_over_life(t)]
+        self.ended_still = self._still_over_lives([t for t in before if not any(t is n for n in tracks)])
         return per_person
 
     def finish(self) -> list[PersonTrack]:
         """At the end of a run: the tracks still going that are shorter than a window and never moved
         faster than the bound (``ended_still``'s rule: the run ending ends them)."""
-        return [t for t in self._tracks if self._still_over_life(t)]
+        return self._still_over_lives(self._tracks)
+
+    def _still_over_lives(self, tracks: list[PersonTrack]) -> list[PersonTrack]:
+        """Those of ``tracks`` still over their whole life (``_still_over_life``), shown still since it began."""
+        still = [t for t in tracks if self._still_over_life(t)]
+        for track in still:
+            track.still_since = track.times[0]
+        return still
 
     def _still_over_life(self, track: PersonTrack) -> bool:
         """A track shorter than a window (longer ones are judged frame by frame) that lasted at least
@@ -176,11 +252,23 @@ class RegionMotion:
         moved = np.linalg.norm(np.asarray(track.centres) - track.centres[-1], axis=1)
         return bool(np.max(moved) < self.max_move_m * life / self.window_s)
 
-    def _stands_still(self, track: PersonTrack, centre_w: np.ndarray, now: float) -> bool:
-        if not track.times or track.times[0] > now - self.window_s:
-            return False                                  # not followed for a whole window yet
-        moved = np.linalg.norm(np.asarray(track.centres) - centre_w, axis=1)
-        return bool(np.max(moved) < self.max_move_m)
+    def _stands_still(self, track: PersonTrack, centre_w: np.ndarray, now: float) -> Optional[int]:
+        """Where the window over which the track's centre stayed within the bound begins (index), or None."""
+        first = track.start(now, self.window_s)
+        if first is None:
+            return None                                   # not followed for a whole window yet
+        moved = np.linalg.norm(np.asarray(track.centres[first:]) - centre_w, axis=1)
+        return first if np.max(moved) < self.max_move_m else None
+
+    def _surface_still(self, track: PersonTrack, now: float) -> Optional[int]:
+        """Where the surface window over which the track's surface stayed still begins (index), or None:
+        up to the frame before (this frame's step needs its tracked pose: one frame later, which only the
+        masks read; ``surface_drift``)."""
+        first = track.start(now, self.surface_window_s)
+        if first is None or len(track.surface) - first < 2:
+            return None
+        still = surface_still(track.surface[first:], track.measured[first:], track.shares[first:], self.max_move_m)
+        return first if still else None
 
 
 def _to_world(T_cw: np.ndarray):

@@ -18,11 +18,13 @@ import numpy as np
 
 from frontend.dynamic import DynamicStats, RevisedMask
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
+from frontend.dynamic.box_depth_segmentation import person_layer
 from frontend.dynamic.box_memory import BoxMemory
 from frontend.dynamic.free_space import FreeSpaceCheck
 from frontend.dynamic.fusion import fuse
 from frontend.dynamic.keyframe_masks import KeyframeMaskLedger, MaskParts, compose_mask, still_region, vacated_region
 from frontend.dynamic.region_motion import RegionCarry, RegionMotion, box_centre, confirmed_regions
+from frontend.dynamic.surface_drift import FrameTracks, PersonView
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import DynamicConfig
 from slam.core.frame import FeatureFrame
@@ -74,7 +76,7 @@ class DynamicRejector:
         # lookahead, the next one (begun while this one is tracked; each thread takes them in order).
         self._begun: deque[_BegunFrame] = deque()
         self._box_memory = BoxMemory(cfg.detector.hold_frames, set(cfg.classes.dynamic), camera.width, camera.height)
-        self._region_motion = RegionMotion(cfg.still_window_s, cfg.still_max_move_m)
+        self._region_motion = RegionMotion(cfg.still_window_s, cfg.still_max_move_m, camera)
         # A confirmed motion region is carried through thin-evidence frames as long as a lost box is held.
         self._region_carry = RegionCarry(cfg.detector.hold_frames)
         self._motion_methods = [k for k, m in enumerate(methods) if m.measures_motion]
@@ -144,7 +146,7 @@ class DynamicRejector:
         outputs = self._run_methods(ctx, prepared)
         fused = fuse([o.prob for o in outputs.values()], self._weights, self.cfg.fusion, len(frame))
         with self.timer.measure("dynamic.standing_people"):
-            self._still_region = self._standing_people(ctx)
+            self._still_region = self._standing_people(ctx, outputs.get("flow_epipolar"))
         fused, prior_mask = self._regions_and_prior(fused, outputs, ctx)
         self._last = (ctx, outputs)
         self.last_outputs, self.last_fused, self.last_keypoints = outputs, fused, frame.uv_raw
@@ -256,9 +258,10 @@ class DynamicRejector:
         _ = self.last_mask                      # computed together
         return self._still_people_mask
 
-    def _standing_people(self, ctx: DynamicContext) -> Optional[np.ndarray]:
+    def _standing_people(self, ctx: DynamicContext, flow: Optional[MethodOutput]) -> Optional[np.ndarray]:
         """HxW bool: the boxes of the people who stand still (region_motion), less every moving person's
-        box (a walker in front of them keeps all the evidence); None when nobody stands still."""
+        box (a walker in front of them keeps all the evidence); None when nobody stands still. ``flow``:
+        flow_epipolar's output, whose point tracks follow each person's surface (surface_drift)."""
         self.people_still = 0
         self._people = ([], np.zeros(0, bool))
         if not self._region_motion.enabled or not ctx.detections:
@@ -266,10 +269,22 @@ class DynamicRejector:
             return None
         boxes = self._person_boxes(ctx, 0)
         centres = [box_centre(b, ctx.depth, self.camera) for b in boxes]
-        still = self._region_motion.classify(centres, ctx.predicted_T_cw, ctx.frame.timestamp)
+        views = [PersonView(b, self._person_layer(ctx, b)) for b in boxes]
+        tracks = None
+        if flow is not None and flow.tracks is not None and flow.track_origins is not None \
+                and len(flow.tracks) == len(flow.track_origins):
+            tracks = FrameTracks(flow.track_origins, flow.tracks, ctx.depth)
+        still = self._region_motion.classify(centres, ctx.predicted_T_cw, ctx.frame.timestamp, views, tracks)
         self._people = (boxes, still)
         self.people_still = int(still.sum())
         return still_region(ctx.gray.shape, boxes, still)
+
+    @staticmethod
+    def _person_layer(ctx: DynamicContext, box: tuple[int, int, int, int]) -> Optional[float]:
+        """The box's person layer, from the frame's cache (box_depth's) or computed and cached."""
+        if box not in ctx.person_layers:
+            ctx.person_layers[box] = person_layer(box, ctx.depth)
+        return ctx.person_layers[box]
 
     def _person_boxes(self, ctx: DynamicContext, pad: int, detections: Optional[list] = None
                       ) -> list[tuple[int, int, int, int]]:

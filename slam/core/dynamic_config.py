@@ -235,10 +235,11 @@ class DynamicConfig(ConfigSection):
     """A fifth: the share of a walking person's tracks the epipolar test flags (per-pixel recall
     0.17-0.33 on the generated scenes), far above its false alarms on static surfaces."""
     still_window_s: float = Field(0.5, ge=0)
-    """A person whose torso stayed within ``still_max_move_m`` in the world for this long stands still:
-    in their box the keyframe masks (moving surfaces) count only cpr and flow_epipolar (motion evidence),
-    and ``masks/<index>_still.png`` keeps them out of dense maps (frontend/dynamic/region_motion.py).
-    Tracking and the map keep them out either way. 0 = off: every person counts as moving."""
+    """A person whose torso stayed within ``still_max_move_m`` in the world for this long (or whose surface,
+    followed by the point tracks on it, did for twice as long) stands still: in their box the keyframe masks
+    (moving surfaces) count only cpr and flow_epipolar (motion evidence), and ``masks/<index>_still.png``
+    keeps them out of dense maps (frontend/dynamic/region_motion.py, surface_drift.py). Tracking and the
+    map keep them out either way. 0 = off: every person counts as moving."""
     still_max_move_m: float = Field(0.15, gt=0)
     """0.15 m in 0.5 s is 0.3 m/s: half the slowest walking pace, 5x a standing person's sway."""
     mask_free_space_lags_s: list[Lag] = Field(default_factory=lambda: [0.5, 1.0])
