@@ -40,6 +40,14 @@ def test_a_step_is_the_surfaces_world_displacement_whatever_the_camera_does():
         step = surface.step(on, CAMERA, _T_cw(0.0), _T_cw(0.01))
         assert np.allclose(step.displacement, [world_step, 0.0, 0.0], atol=1e-9)
         assert step.moved_share == expect_share
+    # Depth readings that differ by +-4 cm between the frames (noise along the line of sight) move no track.
+    noisy = depth.copy()
+    band = (np.arange(480) // 20) % 2 == 0                # every other row of tracks nearer, the rest farther
+    noisy[band] += 0.04
+    noisy[~band] -= 0.04
+    tracks = origins + [shift_static, 0.0]
+    surface = SurfaceTracker(FrameTracks(origins, tracks, noisy), depth)
+    assert surface.step(surface.shared(view, view), CAMERA, _T_cw(0.0), _T_cw(0.01)).moved_share == 0.0
     # Too few tracks on the person, or a median step no person makes in 1/30 s: no step.
     few = SurfaceTracker(FrameTracks(origins[:4], origins[:4], depth), depth)
     assert few.step(np.ones(4, bool), CAMERA, np.eye(4), np.eye(4)) is None
