@@ -85,7 +85,8 @@ class PersonTrack:
 
     def start(self, now: float, span_s: float) -> Optional[int]:
         """Index of the newest entry at least ``span_s`` before ``now`` (where a span that long begins);
-        None when the track is younger."""
+        None when the track is younger. Within 1 ns counts as at least: an entry exactly a span back
+        must count whatever the rounding of the float timestamps' difference."""
         old = [i for i, t in enumerate(self.times) if t <= now - span_s + 1e-9]
         return old[-1] if old else None
 

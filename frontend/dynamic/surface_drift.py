@@ -53,8 +53,9 @@ _MAX_STEP_M = 0.1
 """A median step longer than this in one frame (3 m/s at 30 Hz, faster than anyone moves indoors) is a
 wrong association, not a person: the frame counts as unmeasured."""
 _STEP_NOISE_M = 0.02
-"""A track moved in the frame when its world displacement exceeds this: a slow walker's step (0.5 m/s is
-1.7 cm per frame) and depth noise at 2 m (Kinect: ~1 cm) lie about here, a walker at 1 m/s is 3.3 cm."""
+"""A track moved in the frame when its world displacement across its line of sight exceeds this: a walker
+at 1 m/s steps 3.3 cm per frame at 30 Hz, a slow one (0.5 m/s) 1.7 cm; a standing person's tracks move by
+LK's error (a pixel at 2 m: 0.4 cm) and their sway (1-3 cm over seconds, far less per frame)."""
 MOVING_SHARE = 0.3
 """Mean share of a person's moved tracks over the window at and above which they count as moving whatever
 the median says (see the module doc for the measured distributions)."""
