@@ -225,12 +225,14 @@ def test_keyframe_masks_leave_a_standing_person_out_and_cover_them_once_they_wal
 
 def test_the_tool_reports_every_seeds_ratio_and_their_median(capsys):
     """``tools/hard_scenes.py --repeats N``: one ratio per seed (ATE over the clean run at the same seed)
-    and the median the test holds, both read back from the printed row."""
+    and the median the test holds, and each seed's keyframe masks, read back from the printed row."""
     hard_scenes = load_tool("hard_scenes")
     assert hard_scenes.main(["border", "--frames", "16", "--repeats", "2"]) == 0
     row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| border"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    seeds, median = cells[-2].split("(")
+    masks = cells[-1].split(", ")
+    assert len(masks) == 2 and masks[0] == cells[8]                  # seed 0's masks are the table's own
+    seeds, median = cells[-3].split("(")
     ratios = [float(x) for x in seeds.split()]
     assert len(ratios) == 2 and ratios[0] == float(cells[4])        # seed 0's ratio is the table's own
     assert float(median.rstrip(")")) == pytest.approx(float(np.median(ratios)), abs=0.006)
