@@ -92,7 +92,7 @@ def on_person(points: np.ndarray, depths: np.ndarray, view: PersonView) -> np.nd
 @dataclass(frozen=True)
 class SurfaceStep:
     """One frame's step of a person's surface: the median world displacement and the share of the tracks
-    that moved more than ``_STEP_NOISE_M``."""
+    that moved more than ``_STEP_NOISE_M`` across their line of sight."""
     displacement: np.ndarray
     moved_share: float
 
