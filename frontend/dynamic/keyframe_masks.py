@@ -238,8 +238,9 @@ class KeyframeMaskLedger:
         confirmed = [t for t, s in zip(tracks, still) if s and t is not None] + list(also_still)
         # A stillness found now covers the span the confirming track was shown still over (``still_since``:
         # the newest entry at least a window old, or a surface window for the surface's test) to now; a
-        # keyframe older than every live track's stored span is final. Dropping by the window alone lost a keyframe exactly at the span's start (composited
-        # two_walk, keyframe 39: 0.500012 s before the frame that found its person still).
+        # keyframe older than every live track's stored span is final. Dropping by the window alone lost a
+        # keyframe exactly at the span's start (composited two_walk, keyframe 39: 0.500012 s before the
+        # frame that found its person still).
         spans = [t.times[0] for t in [*tracks, *also_still] if t is not None and t.times]
         horizon = min([timestamp - self.window_s, *spans])
         self._records = [r for r in self._records if r.timestamp >= horizon]

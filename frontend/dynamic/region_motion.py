@@ -14,9 +14,9 @@ moving surfaces) then count only the motion-measuring methods, and the person's 
 ``last_still_people`` instead, which dense maps leave out as well. Tracking keeps them out, standing or
 not: used for tracking (the issue allows it), the man on Bonn crowd who stands at a desk pulled it as he
 started to walk (five keyframes in a row, frames 415-419, and the dense map's ghost share among people
-0.0030 -> 0.0039), since the rule needs ~5 frames to see a walk begin. Algorithm 3 of the box + depth paper (Fang et al.) reuses single
-features that moved like the static scene between two frames; this is the same idea for a whole person
-over half a second.
+0.0030 -> 0.0039), since the rule needs ~5 frames to see a walk begin. Algorithm 3 of the box + depth
+paper (Fang et al.) reuses single features that moved like the static scene between two frames; this is the
+same idea for a whole person over half a second.
 
 Why the defaults: ``window_s`` 0.5 s and ``max_move_m`` 0.15 m mean an average speed of 0.3 m/s, half
 the slowest deliberate walking pace (~0.5-0.6 m/s; typical 1.2-1.4 m/s), while the sway of a standing
