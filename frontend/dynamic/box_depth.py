@@ -94,7 +94,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontend.dynamic.base import Detection, DynamicContext, MethodOutput, keypoints_in_mask
-from frontend.dynamic.box_depth_segmentation import (box_pixels, flood_fill, overlaps_enough, person_layer,
+from frontend.dynamic.box_depth_segmentation import (box_pixels, cached_person_layer, flood_fill, overlaps_enough,
                                                      segment_box)
 from frontend.dynamic.box_depth_segmentation import (eq8_filter, nearest_valid,  # noqa: F401  (re-exported)
                                                      seed_points, side_distance)
@@ -245,9 +245,7 @@ class BoxDepthMethod:
             x0, y0, x1, y1 = b
             layer = None
             if self.cfg.seed_past_occluder:
-                if b not in layers:                  # the frame's cache (DynamicContext.person_layers)
-                    layers[b] = person_layer(b, depth)
-                layer = layers[b]
+                layer = cached_person_layer(layers, b, depth)
             seg, accepted = segment_box(depth[y0:y1, x0:x1], self.cfg, layer)
             fallback += accepted < 0
             mask[y0:y1, x0:x1] |= seg

@@ -103,6 +103,15 @@ def eq8_filter(region: np.ndarray, depth: np.ndarray, alpha: float, omega: float
     return region & keep
 
 
+def cached_person_layer(layers: dict, box: tuple[int, int, int, int], depth: np.ndarray) -> Optional[float]:
+    """``person_layer`` of ``box`` from the frame's cache ``layers`` (box -> layer,
+    ``DynamicContext.person_layers``), computed and added when missing: box_depth, the standing test and
+    the keyframe masks all ask for the same boxes' layers."""
+    if box not in layers:
+        layers[box] = person_layer(box, depth)
+    return layers[box]
+
+
 def person_layer(box: tuple[int, int, int, int], depth: np.ndarray) -> Optional[float]:
     """The depth (m) of the person in a box (x0, y0, x1, y1 pixels of ``depth``): of the peaks of the box's
     depth histogram that hold at least ``_LAYER_MIN_SHARE`` of its pixels within ``_LAYER_HALF_M``, the one

@@ -34,7 +34,7 @@ import numpy as np
 
 from frontend.dynamic import RevisedMask
 from frontend.dynamic.base import MethodOutput
-from frontend.dynamic.box_depth_segmentation import person_layer
+from frontend.dynamic.box_depth_segmentation import cached_person_layer
 from frontend.dynamic.free_space import Evidence
 from frontend.dynamic.fusion import fuse
 from frontend.dynamic.region_motion import PersonTrack
@@ -171,9 +171,7 @@ def off_body_region(boxes: Sequence[Box], depth: np.ndarray, layers: Optional[di
     for box in boxes:
         x0, y0, x1, y1 = box
         crop = depth[y0:y1, x0:x1]
-        if box not in layers:
-            layers[box] = person_layer(box, depth)
-        layer = layers[box]
+        layer = cached_person_layer(layers, box, depth)
         gap = np.zeros(crop.shape, np.float32) if layer is None else np.abs(crop - np.float32(layer))
         np.minimum(near[y0:y1, x0:x1], gap, out=near[y0:y1, x0:x1])
     off = np.isfinite(near) & (near > _BODY_REACH_M) & (depth > 0)

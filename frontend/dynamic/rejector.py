@@ -18,7 +18,7 @@ import numpy as np
 
 from frontend.dynamic import DynamicStats, RevisedMask
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
-from frontend.dynamic.box_depth_segmentation import person_layer
+from frontend.dynamic.box_depth_segmentation import cached_person_layer
 from frontend.dynamic.box_memory import BoxMemory
 from frontend.dynamic.free_space import FreeSpaceCheck
 from frontend.dynamic.fusion import fuse
@@ -269,7 +269,7 @@ class DynamicRejector:
             return None
         boxes = self._person_boxes(ctx, 0)
         centres = [box_centre(b, ctx.depth, self.camera) for b in boxes]
-        views = [PersonView(b, self._person_layer(ctx, b)) for b in boxes]
+        views = [PersonView(b, cached_person_layer(ctx.person_layers, b, ctx.depth)) for b in boxes]
         tracks = None
         if flow is not None and flow.tracks is not None and flow.track_origins is not None \
                 and len(flow.tracks) == len(flow.track_origins):
@@ -278,13 +278,6 @@ class DynamicRejector:
         self._people = (boxes, still)
         self.people_still = int(still.sum())
         return still_region(ctx.gray.shape, boxes, still)
-
-    @staticmethod
-    def _person_layer(ctx: DynamicContext, box: tuple[int, int, int, int]) -> Optional[float]:
-        """The box's person layer, from the frame's cache (box_depth's) or computed and cached."""
-        if box not in ctx.person_layers:
-            ctx.person_layers[box] = person_layer(box, ctx.depth)
-        return ctx.person_layers[box]
 
     def _person_boxes(self, ctx: DynamicContext, pad: int, detections: Optional[list] = None
                       ) -> list[tuple[int, int, int, int]]:

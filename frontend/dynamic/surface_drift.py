@@ -40,6 +40,7 @@ import numpy as np
 
 from frontend.dynamic.base import keypoints_in_mask
 from slam.core.camera import PinholeCamera
+from slam.core.geometry import invert, transform_points
 
 Box = tuple[int, int, int, int]
 
@@ -116,9 +117,10 @@ class SurfaceTracker:
         camera), or None when fewer than ``MIN_TRACKS`` or the median is longer than ``_MAX_STEP_M``."""
         if int(np.count_nonzero(on)) < MIN_TRACKS:
             return None
-        before = _to_world(camera.backproject(camera.undistort_points(self.flow.origins[on]), self._z_prev[on]),
-                           prev_T_cw)
-        after = _to_world(camera.backproject(camera.undistort_points(self.flow.tracks[on]), self._z_cur[on]), T_cw)
+        T_wc = invert(T_cw)
+        before = transform_points(invert(prev_T_cw), camera.backproject(camera.undistort_points(self.flow.origins[on]),
+                                                                         self._z_prev[on]))
+        after = transform_points(T_wc, camera.backproject(camera.undistort_points(self.flow.tracks[on]), self._z_cur[on]))
         moves = after - before
         displacement = np.median(moves, axis=0)
         if float(np.linalg.norm(displacement)) > _MAX_STEP_M:
@@ -126,15 +128,10 @@ class SurfaceTracker:
         # Whether a track moved is judged across its line of sight: along it the step is the difference of
         # two depth readings, whose noise (the sensor's, and a track sliding a pixel over a body's curved
         # side) reaches centimetres, while across it the step comes from LK's sub-pixel positions.
-        rays = after - (-T_cw[:3, :3].T @ T_cw[:3, 3])
+        rays = after - T_wc[:3, 3]
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
         across = moves - np.sum(moves * rays, axis=1, keepdims=True) * rays
         return SurfaceStep(displacement, float(np.mean(np.linalg.norm(across, axis=1) > _STEP_NOISE_M)))
-
-
-def _to_world(points_c: np.ndarray, T_cw: np.ndarray) -> np.ndarray:
-    R, t = T_cw[:3, :3], T_cw[:3, 3]
-    return (points_c - t) @ R
 
 
 def surface_still(surface: list[np.ndarray], measured: list[bool], shares: list[float], max_move_m: float) -> bool:
