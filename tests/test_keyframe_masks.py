@@ -125,6 +125,46 @@ def test_a_stillness_revises_only_the_keyframes_of_the_span_it_was_shown_over():
     assert revised.frame_index == 6
 
 
+def _final_masks(motion: RegionMotion, ledger: KeyframeMaskLedger, centre_at, frames: int) -> dict[int, np.ndarray]:
+    """A still camera, one person at ``centre_at(i)`` (camera frame) on frame i, a keyframe every 5 frames
+    whose motion-measuring method flags the whole person; each keyframe's mask after every revision,
+    with the run's end."""
+    T, masks = np.eye(4), {}
+    for i in range(frames):
+        still = motion.classify([centre_at(i)], T, i / FPS)
+        tracks = motion.commit(T)
+        keyframe = None
+        if i % 5 == 0:
+            parts = _parts(_box_mask(PERSON), _box_mask(PERSON))
+            parts.still_region = still_region(SHAPE, [PERSON], still)
+            masks[i] = compose_mask(parts)[0]
+            keyframe = (i, parts, [PERSON])
+        for r in ledger.advance(i / FPS, tracks, still, keyframe):
+            masks[r.frame_index] = r.mask
+    last = frames - 1
+    for r in ledger.advance(last / FPS, tracks, still, None, final=True):
+        masks[r.frame_index] = r.mask
+    return masks
+
+
+def test_a_person_shown_still_a_window_past_a_keyframe_leaves_its_motion_flags_and_a_starting_walk_keeps_them():
+    """In a standing person's box only motion evidence counts, and it may be the first steps of a walk,
+    which the centre's test sees only once the person is past the bound. A keyframe the person stayed still
+    a whole window past has false alarms there, and they leave its mask; one made within a window before
+    the walk keeps them."""
+    walk_from = 45                                  # the person walks sideways at 1 m/s after frame 45
+
+    def centre_at(i):
+        return np.array([max(0, i - walk_from) / FPS, 0.0, 2.0])
+    masks = _final_masks(RegionMotion(0.5, 0.15), KeyframeMaskLedger(0.5), centre_at, 80)
+    person = (slice(PERSON[1], PERSON[3]), slice(PERSON[0], PERSON[2]))
+    settled = [i for i, m in sorted(masks.items()) if not (m[person] >= 0.5).any()]
+    assert settled == [0, 5, 10, 15, 20, 25, 30]    # still until 1.5 s: keyframes up to 1.0 s
+    # Standing to the end: the run's end settles the keyframes of its last window as well.
+    masks = _final_masks(RegionMotion(0.5, 0.15), KeyframeMaskLedger(0.5), lambda i: np.array([0.0, 0.0, 2.0]), 40)
+    assert all(not (m[person] >= 0.5).any() for m in masks.values())
+
+
 def test_a_revision_rewrites_the_keyframes_mask_files(tmp_path):
     artifacts = RunArtifacts(tmp_path, config=None, copy_keyframes=False)
     full = _box_mask(PERSON)

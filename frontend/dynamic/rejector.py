@@ -88,6 +88,8 @@ class DynamicRejector:
         self._free_space = FreeSpaceCheck(camera, tuple(cfg.mask_free_space_lags_s), cfg.mask_free_space_margin_m,
                                           cfg.mask_free_space_window_px, tuple(cfg.mask_region_lags_s))
         self.people_still = 0       # people standing still in the last frame (region_motion)
+        # the last frame's people: their tracks and who stood still (the run's end settles them)
+        self._last_people: tuple[list, np.ndarray] = ([], np.zeros(0, bool))
         # Earlier keyframes' masks composed again after the last frame: a person in them was found
         # standing still (keyframe_masks); the run's outputs rewrite those keyframes' mask files.
         self.revised_masks: list[RevisedMask] = []
@@ -326,6 +328,7 @@ class DynamicRejector:
         keyframe = (ctx.frame.index, self._mask_parts, boxes) if is_keyframe and self._mask_parts is not None else None
         self.revised_masks = self._keyframe_masks.advance(ctx.frame.timestamp, tracks, still, keyframe,
                                                           self._region_motion.ended_still)
+        self._last_people = (tracks, still)
         # Earlier keyframes that a later frame now shows (un)moved: composed again (keyframe_masks).
         for (index, timestamp, parts), evidence in grown:
             parts.free_space = evidence
@@ -340,11 +343,13 @@ class DynamicRejector:
 
     def finish_masks(self) -> list[RevisedMask]:
         """At the end of a run: the keyframes whose masks change because a person still followed, for less
-        than a window, never moved (the run's end ends their track)."""
+        than a window, never moved (the run's end ends their track), or because the people standing on the
+        last frame stood through the keyframes of its last window too (``KeyframeMaskLedger``: settled)."""
         if self._last_time is None:
             return []
-        return self._keyframe_masks.advance(self._last_time, [], np.zeros(0, bool), None,
-                                            self._region_motion.finish())
+        tracks, still = self._last_people
+        return self._keyframe_masks.advance(self._last_time, tracks, still, None, self._region_motion.finish(),
+                                            final=True)
 
     def close(self) -> None:
         """Stop the threads and persist what is worth keeping (the detection cache)."""
