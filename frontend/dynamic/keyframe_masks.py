@@ -274,8 +274,9 @@ class KeyframeMaskLedger:
             # false pixels on the standing person, on keyframes where their box meets the image's edge as
             # the camera turns). Until then the flags stay: on generated stand_walk's keyframe 75 the person
             # has begun to walk but is still within the bound, and keeps them (mask recall 0.93; 0.88 if not).
-            settle = [k for k in covered if not record.settled[k] and _motion_flagged(record.parts, record.boxes[k])
-                      and (final or timestamp - record.timestamp >= self.window_s - 1e-9)]
+            due = final or timestamp - record.timestamp >= self.window_s - 1e-9   # tested first: it is free
+            settle = [k for k in covered if due and not record.settled[k]
+                      and _motion_flagged(record.parts, record.boxes[k])]
             if not newly and not settle:
                 continue
             record.still[newly] = True
