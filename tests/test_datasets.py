@@ -227,6 +227,21 @@ def test_synthetic_is_deterministic_for_a_seed():
     assert not np.array_equal(a[0].rgb, c.rgb)
 
 
+def test_kept_frames_are_rendered_once_read_only_and_the_same_as_fresh_ones():
+    kw = dict(n_frames=3, width=160, height=120, fx=131.25, fy=131.25, cx=79.5, cy=59.5, movers="people")
+    kept, fresh = SyntheticSequence(seed=3, **kw), list(SyntheticSequence(seed=3, **kw))
+    kept.keep_frames()
+    first, second = list(kept), list(kept)
+    assert all(a is b for a, b in zip(first, second))              # the second pass renders nothing
+    for a, f in zip(first, fresh):
+        assert np.array_equal(a.rgb, f.rgb) and np.array_equal(a.depth, f.depth)
+        assert np.array_equal(a.dynamic_mask, f.dynamic_mask)
+        with pytest.raises(ValueError, match="read-only"):
+            a.depth[0, 0] = 1.0                                    # a pass cannot change what the next sees
+    kept.keep_frames(False)
+    assert next(iter(kept)) is not first[0]
+
+
 def test_synthetic_depth_is_exact(seq):
     """Back-projected pixels of the room lie on its walls; a fronto-parallel wall has constant depth."""
     fx, fy, cx, cy = seq.intrinsics

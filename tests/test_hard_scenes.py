@@ -38,7 +38,12 @@ pytestmark = pytest.mark.slow   # building the four scenes alone takes ~20 s
 
 @pytest.fixture(scope="module")
 def scenes() -> dict[str, HardScene]:
-    return {name: HardScene(name, n_frames=FRAMES) for name in HARD_SCENES}
+    """Each scene's frames are rendered once for all its runs here (three seeds, stand_walk four times):
+    rendering is most of a run's time; ~0.4 GB per scene, freed with the module."""
+    scenes = {name: HardScene(name, n_frames=FRAMES) for name in HARD_SCENES}
+    for scene in scenes.values():
+        scene.keep_frames()
+    return scenes
 
 
 def _mover_depth(scene: HardScene, index: int) -> np.ndarray:
@@ -113,6 +118,7 @@ def test_unknown_scene_names_the_choices():
 def clean_runs() -> list:
     """The same camera path without people, once per seed of ``SEEDS``."""
     seq = synthetic_sequence(FRAMES)
+    seq.keep_frames()
     return [evaluate_synthetic(seq, seeded(synthetic_config(seq, preset="dynamic_all"), seed)) for seed in SEEDS]
 
 

@@ -22,7 +22,13 @@ from conftest import (LAPS, PERIOD, drift_room_config as _config, inject_drift a
                       walk_laps)
 
 
-def _walk(loop: bool, revisit_ratio: float = 0.0) -> tuple[System, np.ndarray]:
+@pytest.fixture(scope="module")
+def renders() -> dict:
+    """The lap path's images, rendered by the first walk for the others (``walk_laps``)."""
+    return {}
+
+
+def _walk(loop: bool, renders: dict, revisit_ratio: float = 0.0) -> tuple[System, np.ndarray]:
     """Two laps of the room. By default lap 2 is mapped anew (``keyframes.revisit_ratio`` 0): these tests
     are about what loops do to a map that drifted on both laps. With the default policy the camera
     re-uses lap 1's keyframes once the first loop has joined them, makes few keyframes on lap 2 and so
@@ -31,20 +37,20 @@ def _walk(loop: bool, revisit_ratio: float = 0.0) -> tuple[System, np.ndarray]:
     config = _config(loop)
     system = System(config.model_copy(update={"keyframes": config.keyframes.model_copy(
         update={"revisit_ratio": revisit_ratio})}))
-    return system, walk_laps(system, seq, LAPS * PERIOD)
+    return system, walk_laps(system, seq, LAPS * PERIOD, renders)
 
 
 @pytest.fixture(scope="module")
-def walks():
+def walks(renders):
     """The walk with loop closing on, left open for the tests that read and edit its graph."""
     with pytest.MonkeyPatch.context() as mp:
         _inject_drift(mp)
-        on, gt = _walk(True)
+        on, gt = _walk(True, renders)
     return on, gt
 
 
 @pytest.fixture(scope="module")
-def written_ates():
+def written_ates(renders):
     """ATE of the trajectories the runs with loop closing on and off write: after ``close()`` (every
     update applied, the final adjustment done), which is what a user gets; and the closed run with loop
     closing off (``walks`` stays open for the tests that edit its graph)."""
@@ -52,7 +58,7 @@ def written_ates():
     with pytest.MonkeyPatch.context() as mp:
         _inject_drift(mp)
         for loop in (True, False):
-            system, gt = _walk(loop)
+            system, gt = _walk(loop, renders)
             system.close()
             ates.append(_ate(system, gt))
             systems.append(system)
@@ -86,12 +92,12 @@ def test_loop_found_and_ate_at_least_halved(walks, written_ates):
 
 
 @pytest.mark.slow
-def test_second_lap_after_the_loop_adds_few_keyframes():
+def test_second_lap_after_the_loop_adds_few_keyframes(renders):
     """Without drift and with the default keyframe policy: once the loop has joined the laps, the camera
     passes its lap-1 keyframes, and keyframes due by time alone are not made there
     (``keyframes.revisit_ratio``), so the map grows with the space, not with the laps (measured: 30
     keyframes on lap 1, 5 on lap 2, against 30 and 30 with the rule off), and the trajectory is as good."""
-    system, gt = _walk(True, revisit_ratio=KeyframeConfig().revisit_ratio)
+    system, gt = _walk(True, renders, revisit_ratio=KeyframeConfig().revisit_ratio)
     system.close()
     frames = np.array([kf.frame_index for kf in system.mapper.map.keyframes])
     lap1, lap2 = int((frames < PERIOD).sum()), int((frames >= PERIOD).sum())
