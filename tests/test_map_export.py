@@ -14,21 +14,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-o3d = pytest.importorskip("open3d")
+from backend.map_io import load_map
+from frontend.dynamic.oracle import synthetic_oracle
+from slam.run import pipeline as pipeline_module
+from slam.cli import main
+from slam.core.config import ConfigError, load_config
+from slam.datasets import SyntheticSequence, TumDataset
+from slam.run.dynamic_eval import synthetic_config
+from slam.run.map_export import (ExportRequest, dynamic_colors, dynamic_evidence, ghost_fraction,
+                                 load_keyframe_set)
+from slam.run.trajectory import read_tum
+from slam.run.tsdf import BYTES_PER_VOXEL, VolumeSizeWarning, fuse_keyframes, plan_grid
 
-from backend.map_io import load_map  # noqa: E402
-from frontend.dynamic.oracle import synthetic_oracle  # noqa: E402
-from slam.run import pipeline as pipeline_module  # noqa: E402
-from slam.cli import main  # noqa: E402
-from slam.core.config import ConfigError, load_config  # noqa: E402
-from slam.datasets import SyntheticSequence, TumDataset  # noqa: E402
-from slam.run.dynamic_eval import synthetic_config  # noqa: E402
-from slam.run.map_export import (ExportRequest, dynamic_colors, dynamic_evidence, ghost_fraction,  # noqa: E402
-                             load_keyframe_set)
-from slam.run.trajectory import read_tum  # noqa: E402
-from slam.run.tsdf import BYTES_PER_VOXEL, VolumeSizeWarning, fuse_keyframes, plan_grid  # noqa: E402
+from conftest import ACCURACY_GROUP, report_figures
 
-from conftest import ACCURACY_GROUP, report_figures  # noqa: E402
+
+def o3d():
+    """open3d, imported by the tests that read its files back: imported at collection it cost every pytest
+    process ~2.6 s (open3d imports dash, whose ~200 files pytest then rewrites as a plugin's)."""
+    import open3d
+    return open3d
+
 
 PEOPLE_FROM_FRAME = 230          # Bonn crowd: people walk into view from about here
 MESH, CLOUD, SPARSE = "map_dense_mesh.ply", "map_dense_cloud.ply", "map_sparse.ply"
@@ -45,7 +51,7 @@ def export(*argv) -> int:
 
 
 def mesh_vertices(path: Path) -> np.ndarray:
-    mesh = o3d.io.read_triangle_mesh(str(path))
+    mesh = o3d().io.read_triangle_mesh(str(path))
     assert len(mesh.triangles) > 0, f"{path} has no triangles"
     return np.asarray(mesh.vertices)
 
@@ -84,7 +90,7 @@ def test_run_leaves_export_inputs(people_run):
               if not line.startswith("#")]
     assert len(listed) == summary.keyframes
     index = int(listed[-1][0])
-    depth = o3d.io.read_image(str(out / "keyframes" / "depth" / f"{index:06d}.png"))
+    depth = o3d().io.read_image(str(out / "keyframes" / "depth" / f"{index:06d}.png"))
     np.testing.assert_allclose(np.asarray(depth) / 1000.0, seq.frame(index).depth, atol=6e-4)
     assert (out / "map.npz").is_file() and (out / SPARSE).is_file()
 
@@ -94,7 +100,7 @@ def test_sparse_ply_holds_the_good_landmarks_with_their_colours(people_run):
     _seq, out, _summary = people_run
     landmarks = load_map(out / "map.npz")[0].landmarks
     good = ~landmarks.bad
-    cloud = o3d.io.read_point_cloud(str(out / SPARSE))
+    cloud = o3d().io.read_point_cloud(str(out / SPARSE))
     np.testing.assert_allclose(np.asarray(cloud.points), landmarks.xyz[good], atol=1e-5)
     rgb = np.round(np.asarray(cloud.colors) * 255).astype(np.uint8)
     np.testing.assert_array_equal(rgb, landmarks.color[good][:, ::-1])
@@ -108,7 +114,7 @@ def test_sparse_ply_by_dynamic_evidence(people_run, tmp_path):
     assert not (tmp_path / MESH).exists()
     landmarks = load_map(out / "map.npz")[0].landmarks
     good = ~landmarks.bad
-    rgb = np.round(np.asarray(o3d.io.read_point_cloud(str(tmp_path / "map_sparse_dynamic.ply")).colors) * 255)
+    rgb = np.round(np.asarray(o3d().io.read_point_cloud(str(tmp_path / "map_sparse_dynamic.ply")).colors) * 255)
     np.testing.assert_array_equal(rgb.astype(np.uint8), dynamic_colors(dynamic_evidence(landmarks)[good]))
     np.testing.assert_array_equal(dynamic_colors(np.array([0.0, 1.0])), [[0, 0, 128], [128, 0, 0]])
 
@@ -160,7 +166,7 @@ def test_dense_mesh_lies_on_the_static_surfaces(people_run, tmp_path):
     assert np.isfinite(masked).mean() > 0.98
     assert p95 < 0.0057 * 1.15 and p99 < 0.0081 * 1.15, (p95, p99)
     assert unmasked_p99 > 0.3, "the people should be in an unmasked mesh"
-    cloud = o3d.io.read_point_cloud(str(out / CLOUD))
+    cloud = o3d().io.read_point_cloud(str(out / CLOUD))
     assert len(cloud.points) > 1000 and cloud.has_colors()
 
 
@@ -297,7 +303,7 @@ def test_bonn_map_built_among_people_needs_the_masks(bonn_run):
 def test_bonn_sparse_map_from_a_map_file_and_dataset(bonn_run, tmp_path):
     out, _config, dataset, _pose_at = bonn_run
     assert export("--map", out / "map.npz", "--dataset", dataset.root, "--sparse", "--out", tmp_path) == 0
-    cloud = o3d.io.read_point_cloud(str(tmp_path / SPARSE))
+    cloud = o3d().io.read_point_cloud(str(tmp_path / SPARSE))
     assert len(cloud.points) == int((~load_map(out / "map.npz")[0].landmarks.bad).sum()) > 500
 
 
