@@ -239,14 +239,14 @@ def walk_laps(system, seq, n_frames: int, renders: Optional[dict] = None) -> np.
     gt = []
     for i in range(n_frames):
         T = lap_pose(i)
-        if renders is None or i not in renders:
-            rgb, depth = seq.render(T, 0.0)
-            rgb.setflags(write=False)
-            depth.setflags(write=False)
+        images = None if renders is None else renders.get(i)
+        if images is None:
+            images = seq.render(T, 0.0)
             if renders is not None:
-                renders[i] = rgb, depth
-        rgb, depth = renders[i] if renders is not None else (rgb, depth)
-        system.process(rgb, depth, i / 30.0, i)
+                for image in images:
+                    image.setflags(write=False)   # shared with the next walk
+                renders[i] = images
+        system.process(*images, i / 30.0, i)
         gt.append(T)
     system.mapper.sync()
     return np.array(gt)

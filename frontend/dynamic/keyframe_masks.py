@@ -274,9 +274,9 @@ class KeyframeMaskLedger:
             # false pixels on the standing person, on keyframes where their box meets the image's edge as
             # the camera turns). Until then the flags stay: on generated stand_walk's keyframe 75 the person
             # has begun to walk but is still within the bound, and keeps them (mask recall 0.93; 0.88 if not).
-            due = final or timestamp - record.timestamp >= self.window_s - 1e-9   # tested first: it is free
-            settle = [k for k in covered if due and not record.settled[k]
-                      and _motion_flagged(record.parts, record.boxes[k])]
+            due = final or timestamp - record.timestamp >= self.window_s - 1e-9
+            settle = [k for k in covered if not record.settled[k]
+                      and _motion_flagged(record.parts, record.boxes[k])] if due else []
             if not newly and not settle:
                 continue
             record.still[newly] = True

@@ -213,21 +213,24 @@ class SyntheticSequence(DatasetDefaults):
 
     def __iter__(self) -> Iterator[RGBDFrame]:
         for i in range(self.n_frames):
-            if self._kept is None:
-                yield self.frame(i, cache=False)
-                continue
-            if i not in self._kept:
-                frame = self.frame(i, cache=False)
-                for array in (frame.rgb, frame.depth, frame.dynamic_mask):
-                    array.setflags(write=False)       # shared by every later pass: nobody may draw on it
-                self._kept[i] = frame
-            yield self._kept[i]
+            yield self.frame(i, cache=False) if self._kept is None else self._kept_frame(i)
+
+    def _kept_frame(self, index: int) -> RGBDFrame:
+        if index not in self._kept:
+            frame = self.frame(index, cache=False)
+            for array in (frame.rgb, frame.depth, frame.dynamic_mask):
+                array.setflags(write=False)       # shared by every later pass: nobody may draw on it
+            self._kept[index] = frame
+        return self._kept[index]
 
     def keep_frames(self, keep: bool = True) -> None:
         """While on, iterating renders each frame once and keeps it (~2.5 MB at 640 x 480) for the next pass:
         runs of the same scene under several seeds render it once (rendering is ~60 % of a generated
         run's time: close_pass, 30 of 52 s for 150 frames). Off lets the kept frames go."""
-        self._kept = (self._kept if self._kept is not None else {}) if keep else None
+        if not keep:
+            self._kept = None
+        elif self._kept is None:
+            self._kept = {}
 
     def frame(self, index: int, cache: bool = True) -> RGBDFrame:
         """Frame ``index`` with its ground-truth ``dynamic_mask``; ``cache`` keeps its ray cast for the
