@@ -22,7 +22,8 @@ def _runs(whole, cpu, ate, trajectory):
 
 
 def test_summary_gives_every_round_the_ratio_of_the_means_the_spread_and_whether_the_bits_agree():
-    same = {"seq": (_runs([90.0, 110.0], [150.0, 170.0], 0.0233, b"t"), _runs([100.0, 120.0], [180.0, 180.0], 0.0233, b"t"))}
+    same = {"seq": (_runs([90.0, 110.0], [150.0, 170.0], 0.0233, b"t"),
+                    _runs([100.0, 120.0], [180.0, 180.0], 0.0233, b"t"))}
     text = speed_ab.summary_table(same)
     assert "| seq | this tree | 90.0, 110.0 | 100.0 | 160.0 | 0.0233 |" in text
     assert "| seq | base | 100.0, 120.0 | 110.0 | 180.0 | 0.0233 |" in text

@@ -75,7 +75,8 @@ def _spread(values: list[float]) -> str:
     return f"{(max(values) - min(values)) / np.mean(values):.1%}" if len(values) > 1 else "–"
 
 
-def _run_benchmark(tree: Path, sequence: Path, output: Path, passthrough: list[str]) -> tuple[float, float, float, bytes]:
+def _run_benchmark(tree: Path, sequence: Path, output: Path,
+                   passthrough: list[str]) -> tuple[float, float, float, bytes]:
     """``tree``'s tools/benchmark.py on one sequence in its own process (its own code first on the path);
     (whole-run ms/frame, CPU ms/frame, ATE, trajectory bytes)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
@@ -138,6 +139,9 @@ def main(argv=None) -> int:
     except RuntimeError as exc:           # a run failed: its command and the end of its error output
         print(f"speed_ab: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:             # the benchmark in flight got the Ctrl-C too and has stopped
+        print("speed_ab: interrupted; the finished runs stay in " + str(args.output), file=sys.stderr)
+        return 130
     finally:
         subprocess.run(["git", "worktree", "remove", "--force", str(base_tree)], cwd=REPO, capture_output=True)
     table = summary_table(results)
