@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from frontend.dynamic.oracle import synthetic_oracle
 from slam.datasets import RGBDFrame, SyntheticSequence
 from slam.datasets.synthetic import MOVER_PRESETS, mover_kinds
 
@@ -104,6 +105,34 @@ def test_mover_boxes_are_tight_and_hold_every_pixel_of_their_mover(crowd):
         big = crowd.mover_boxes(i, min_pixels=2000)
         assert set(big) <= set(boxes)
         assert len(big) == sum(np.count_nonzero(ids == k) >= 2000 for k in present)
+
+
+def test_boxes_noted_while_rendering_are_a_fresh_casts_and_the_oracle_casts_nothing_more(monkeypatch):
+    """The ground-truth detector reads each frame's boxes when the frame is detected: they are noted as the
+    frame is rendered (every frame of a run is), so a run asks the ray caster for nothing more, and they
+    are the boxes a separate cast of the same frame gives."""
+    rendered, fresh = (SyntheticSequence(n_frames=20, movers="people", seed=1, **SMALL) for _ in range(2))
+    for _ in rendered:
+        pass
+    oracle = synthetic_oracle(rendered, kinds={"person": 0}, margin_px=3, skip_frames=[5])
+
+    def no_cast(index):
+        raise AssertionError(f"frame {index} cast again")
+
+    monkeypatch.setattr(rendered, "_cast_at", no_cast)
+    seen = 0
+    for i, t in enumerate(rendered.timestamps):
+        boxes = rendered.mover_boxes(i)
+        assert boxes == fresh.mover_boxes(i)
+        w, h = rendered.width, rendered.height
+        widened = [(max(x0 - 3, 0), max(y0 - 3, 0), min(x1 + 3, w), min(y1 + 3, h), 0) for x0, y0, x1, y1, _ in boxes]
+        got = [(d.x0, d.y0, d.x1, d.y1, d.class_id) for d in oracle.detect(None, float(t))]
+        assert got == ([] if i == 5 else widened)
+        seen += bool(boxes)
+    assert seen >= 10                                # frames with movers in view were compared
+    empty = SyntheticSequence(n_frames=3, **SMALL)   # no movers: nothing to cast for
+    monkeypatch.setattr(empty, "_cast_at", no_cast)
+    assert empty.mover_boxes(1) == [] and synthetic_oracle(empty).detect(None, 0.0) == []
 
 
 @pytest.mark.parametrize("movers, path", [("people", "orbit"), ("boxes", "line"), ("crowd", "orbit")])

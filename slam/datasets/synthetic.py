@@ -172,6 +172,11 @@ class SyntheticSequence(DatasetDefaults):
         """Global face index -> index into ``movers`` (-1: static scene or no hit)."""
         self._casts: OrderedDict = OrderedDict()
         self._kept: Optional[dict[int, RGBDFrame]] = None   # keep_frames
+        # Frame index -> (mover, visible pixels, x0, y0, x1, y1) of every mover in view, noted by every ray
+        # cast: a detector standing in for YOLOX (frontend.dynamic.oracle) asks for each frame's boxes after
+        # the frame is rendered, and a scene is run under several seeds; without this each question cast the
+        # frame again (~30 ms, a sixth of a generated run's time).
+        self._mover_extents: dict[int, tuple[tuple[int, int, int, int, int, int], ...]] = {}
 
     def _build_atlas(self) -> None:
         """Pack all face textures (with baked Lambert shading) into one flat texel array for one gather."""
@@ -257,18 +262,35 @@ class SyntheticSequence(DatasetDefaults):
         """Detector-like ground truth: (x0, y0, x1, y1, kind) per mover with >= ``min_pixels`` visible
         pixels in frame ``index``; ``mask[y0:y1, x0:x1]`` holds all of them (x1, y1 exclusive). kind is
         "person", "box" or "chair" (a chair is listed while still too, unless ``moving_only``)."""
-        ids = self.mover_ids(index)
+        if not self.movers:
+            return []
         moving = self.moving(float(self.timestamps[index]))
-        out = []
-        for i, mover in enumerate(self.movers):
-            if moving_only and not moving[i]:
-                continue
-            hit = ids == i
-            if np.count_nonzero(hit) < max(1, min_pixels):
-                continue
-            rows, cols = np.flatnonzero(hit.any(1)), np.flatnonzero(hit.any(0))
-            out.append((int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1, mover.kind))
-        return out
+        return [(x0, y0, x1, y1, self.movers[i].kind) for i, pixels, x0, y0, x1, y1 in self.mover_extents(index)
+                if (moving[i] or not moving_only) and pixels >= max(1, min_pixels)]
+
+    def mover_extents(self, index: int) -> tuple[tuple[int, int, int, int, int, int], ...]:
+        """(mover, visible pixels, x0, y0, x1, y1) of every mover visible in frame ``index``, in mover order;
+        ``mask[y0:y1, x0:x1]`` holds all its pixels. Noted whenever the frame is cast, so asking after the
+        frame was rendered costs nothing."""
+        if not self.movers:
+            return ()
+        if index not in self._mover_extents:
+            self._cast_frame(index)
+        return self._mover_extents[index]
+
+    def _note_mover_extents(self, index: int, face: np.ndarray) -> None:
+        if index in self._mover_extents:
+            return
+        extents = []
+        if self.movers:
+            ids = self.face_mover[face]
+            pixels = np.bincount(ids.reshape(-1) + 1, minlength=len(self.movers) + 1)[1:]
+            for i in np.flatnonzero(pixels):
+                hit = ids == i
+                rows, cols = np.flatnonzero(hit.any(1)), np.flatnonzero(hit.any(0))
+                extents.append((int(i), int(pixels[i]), int(cols[0]), int(rows[0]), int(cols[-1]) + 1,
+                                int(rows[-1]) + 1))
+        self._mover_extents[index] = tuple(extents)
 
     def _mask(self, face: np.ndarray, time: float) -> np.ndarray:
         if not self.movers:
@@ -280,6 +302,7 @@ class SyntheticSequence(DatasetDefaults):
         if index in self._casts:
             return self._casts[index]
         out = self._cast_at(index)
+        self._note_mover_extents(index, out[2])
         if cache:
             self._casts[index] = out
             while len(self._casts) > 3:

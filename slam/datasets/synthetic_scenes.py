@@ -128,7 +128,8 @@ class HardScene(SyntheticSequence):
     # -- what the camera and the detector make of it --------------------------------------------------
 
     def _coverage(self) -> np.ndarray:
-        return np.array([float(np.mean(self.mover_ids(i) >= 0)) for i in range(self.n_frames)])
+        area = self.width * self.height
+        return np.array([sum(e[1] for e in self.mover_extents(i)) / area for i in range(self.n_frames)])
 
     def _blurred_frames(self) -> frozenset[int]:
         """close_pass only: frames where the walker covers more than 10 % of the image are blurred."""
