@@ -110,7 +110,9 @@ def test_run_max_frames(capsys, synthetic_folder, tmp_path):
 
 def test_run_realtime_replays_at_the_recorded_rate_and_reports_dropped_frames(capsys, synthetic_folder, tmp_path):
     """--realtime: the 30 frames (1 s at 30 fps) are offered at their recorded times, so the run lasts at
-    least the recording; whatever this machine drops is counted, and the frames processed are all written."""
+    least the recording; whatever this machine drops is counted, and every frame processed is written or
+    counted LOST (on a busy machine most frames are dropped, and the gap to the next one processed can be
+    more motion than tracking follows: a CI run processed 3 of the 30 and lost the third)."""
     code, out, _ = run_cli(capsys, "run", synthetic_folder, "-o", tmp_path / "out", "-q", "-c", "static",
                            "--realtime", "--set", "output.report=false")
     assert code == 0
@@ -119,7 +121,8 @@ def test_run_realtime_replays_at_the_recorded_rate_and_reports_dropped_frames(ca
     assert summary["frames"] + summary["dropped_frames"] == 30
     assert summary["wall_time_s"] >= 29 / 30 * 0.95   # the last frame is due 29 intervals after the first
     assert yaml.safe_load((tmp_path / "out" / "config.yaml").read_text())["runtime"]["realtime"] is True
-    assert len(data_lines(tmp_path / "out" / "trajectory.txt")) == summary["frames"]
+    assert summary["tracked"] + summary["lost"] == summary["frames"] and summary["tracked"] >= 1
+    assert len(data_lines(tmp_path / "out" / "trajectory.txt")) == summary["tracked"]
     assert ("dropped" in out) if summary["dropped_frames"] else ("realtime: no frame dropped" in out)
 
 

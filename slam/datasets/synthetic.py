@@ -275,21 +275,19 @@ class SyntheticSequence(DatasetDefaults):
         if not self.movers:
             return ()
         if index not in self._mover_extents:
-            self._cast_frame(index)
+            self._note_mover_extents(index, self._cast_frame(index)[2])
         return self._mover_extents[index]
 
     def _note_mover_extents(self, index: int, face: np.ndarray) -> None:
-        if index in self._mover_extents:
+        if not self.movers or index in self._mover_extents:
             return
         extents = []
-        if self.movers:
-            ids = self.face_mover[face]
-            pixels = np.bincount(ids.reshape(-1) + 1, minlength=len(self.movers) + 1)[1:]
-            for i in np.flatnonzero(pixels):
-                hit = ids == i
-                rows, cols = np.flatnonzero(hit.any(1)), np.flatnonzero(hit.any(0))
-                extents.append((int(i), int(pixels[i]), int(cols[0]), int(rows[0]), int(cols[-1]) + 1,
-                                int(rows[-1]) + 1))
+        ids = self.face_mover[face]
+        pixels = np.bincount(ids.reshape(-1) + 1, minlength=len(self.movers) + 1)[1:]
+        for i in np.flatnonzero(pixels):
+            hit = ids == i
+            rows, cols = np.flatnonzero(hit.any(1)), np.flatnonzero(hit.any(0))
+            extents.append((int(i), int(pixels[i]), int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1))
         self._mover_extents[index] = tuple(extents)
 
     def _mask(self, face: np.ndarray, time: float) -> np.ndarray:
