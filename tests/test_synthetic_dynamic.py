@@ -107,6 +107,21 @@ def test_mover_boxes_are_tight_and_hold_every_pixel_of_their_mover(crowd):
         assert len(big) == sum(np.count_nonzero(ids == k) >= 2000 for k in present)
 
 
+def test_frames_rendered_ahead_on_a_reader_thread_are_those_rendered_one_by_one():
+    """Iterating renders the next frames on a reader thread while the caller works; the caller may render
+    other times of the same sequence meanwhile (the movers keep their last pose): no pixel may change."""
+    seq, ref = (SyntheticSequence(n_frames=12, movers="people", seed=2, **SMALL) for _ in range(2))
+    count = 0
+    for i, frame in enumerate(seq):
+        seq.render(seq.pose(0.5), 0.5)
+        expected = ref.frame(i, cache=False)
+        assert frame.index == i
+        assert np.array_equal(frame.rgb, expected.rgb) and np.array_equal(frame.depth, expected.depth)
+        assert np.array_equal(frame.dynamic_mask, expected.dynamic_mask)
+        count += 1
+    assert count == 12
+
+
 def test_boxes_noted_while_rendering_are_a_fresh_casts_and_the_oracle_casts_nothing_more(monkeypatch):
     """The ground-truth detector reads each frame's boxes when the frame is detected: they are noted as the
     frame is rendered (every frame of a run is), so a run asks the ray caster for nothing more, and they

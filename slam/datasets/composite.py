@@ -110,9 +110,11 @@ class CompositeScene(HardScene):
 
     def _real(self, index: int) -> RGBDFrame:
         """The real frame ``index``, the last one kept: ``frame`` and the cast it triggers read it once."""
-        if self._last_real is None or self._last_real.index != index:
-            self._last_real = self.base[index]
-        return self._last_real
+        real = self._last_real   # read once: a reader thread may render another frame meanwhile
+        if real is None or real.index != index:
+            real = self.base[index]
+            self._last_real = real
+        return real
 
     def frame(self, index: int, cache: bool = True) -> RGBDFrame:
         real = self._real(index)

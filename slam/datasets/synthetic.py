@@ -17,7 +17,8 @@ and paths in ``synthetic_movers``, their looks in ``synthetic_bodies`` and their
 """
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Iterator, Optional, Sequence, Union
 
@@ -31,7 +32,7 @@ from .synthetic_movers import MOVER_PRESETS, Mover, WalkLoop, mover_kinds  # noq
 from .synthetic_planning import MoverPlanner
 from .synthetic_primitives import _EDGES, _NEAR, _SIGNS, TEXEL, Box, add_textures, static_pose
 from .synthetic_primitives import make_texture  # noqa: F401  (re-exported)
-from .tum import CAMERA_FILE
+from .tum import CAMERA_FILE, PREFETCH_FRAMES
 
 _LIGHT = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
 
@@ -217,8 +218,18 @@ class SyntheticSequence(DatasetDefaults):
         return ts, np.stack([self.pose(t) for t in ts])
 
     def __iter__(self) -> Iterator[RGBDFrame]:
-        for i in range(self.n_frames):
-            yield self.frame(i, cache=False) if self._kept is None else self._kept_frame(i)
+        # Rendering a frame costs about as much as tracking it (~40 % of a demo's main thread), and numpy
+        # releases the GIL in its array loops: as a TUM folder's frames are decoded (slam/datasets/tum.py),
+        # a reader thread renders the next frames while this one is tracked. Frames come in order; the
+        # render is a function of the frame index alone, so the thread changes no pixel.
+        load = (lambda i: self.frame(i, cache=False)) if self._kept is None else self._kept_frame
+        with ThreadPoolExecutor(1, thread_name_prefix="dynslam-reader") as reader:
+            ahead = deque(reader.submit(load, i) for i in range(min(PREFETCH_FRAMES, self.n_frames)))
+            for i in range(self.n_frames):
+                frame = ahead.popleft().result()
+                if i + PREFETCH_FRAMES < self.n_frames:
+                    ahead.append(reader.submit(load, i + PREFETCH_FRAMES))
+                yield frame
 
     def _kept_frame(self, index: int) -> RGBDFrame:
         if index not in self._kept:

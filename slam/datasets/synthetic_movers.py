@@ -100,12 +100,14 @@ class Mover:
     _last: tuple = field(default=(None, None), repr=False)
 
     def root(self, time: float) -> tuple[np.ndarray, float]:
-        if self._last[0] != time:
+        last = self._last     # read once: a reader thread may render another time meanwhile
+        if last[0] != time:
             pos, rot, gait = self.track(np.array([time], float))
             pose = np.eye(4)
             pose[:3, :3], pose[:3, 3] = rot[0], pos[0]
-            self._last = (time, (pose, float(gait[0])))
-        return self._last[1]
+            last = (time, (pose, float(gait[0])))
+            self._last = last
+        return last[1]
 
     def part_pose(self, k: int, time: float) -> np.ndarray:
         pose, gait = self.root(time)
