@@ -10,7 +10,8 @@ from .folder import INTRINSICS_FILE, ImageFolderDataset, is_image_folder, read_f
 from .realsense_bag import RealSenseBagDataset, is_realsense_bag, read_realsense_camera
 from .replay import RealtimeReplay
 from .rosbag import RosbagDataset, is_rosbag, read_bag_camera
-from .synthetic import SyntheticSequence, write_tum_layout
+from .synthetic import SyntheticSequence
+from .synthetic_export import write_tum_layout
 from .tum import (CAMERA_FILE, DatasetError, DatasetWarning, TumDataset, associate, guess_camera,
                   load_groundtruth, read_intrinsics)
 

@@ -1,11 +1,17 @@
 """The record every dataset yields, and the protocol a dataset follows."""
 from __future__ import annotations
 
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Generator, Iterator, Optional, Protocol, Sequence
+from typing import Callable, Generator, Iterator, Optional, Protocol, Sequence, TypeVar
 
 import numpy as np
+
+T = TypeVar("T")
+
+READ_AHEAD_FRAMES = 2   # frames loaded ahead on a reader thread
 
 
 @dataclass
@@ -102,3 +108,17 @@ def frames_of(dataset: RGBDDataset) -> Generator[RGBDFrame, None, None]:
     """The dataset's frames as a generator whose ``close()`` also closes the dataset's own iterator when
     that has a ``close`` (PEP 380's ``yield from``): stopping early stops a reader thread or a camera."""
     yield from dataset
+
+
+def read_ahead(load: Callable[[int], T], count: int) -> Iterator[T]:
+    """``load(0) .. load(count - 1)`` in order, each begun ``READ_AHEAD_FRAMES`` ahead on a reader thread
+    ("dynslam-reader") while the caller works on the one before: decoding a TUM folder's PNGs and rendering
+    a generated frame release the GIL for most of their time. At most that many results wait in memory;
+    closing the iterator early waits for those only. ``load``'s exceptions are raised here, in order."""
+    with ThreadPoolExecutor(1, thread_name_prefix="dynslam-reader") as reader:
+        ahead = deque(reader.submit(load, i) for i in range(min(READ_AHEAD_FRAMES, count)))
+        for i in range(count):
+            result = ahead.popleft().result()
+            if i + READ_AHEAD_FRAMES < count:
+                ahead.append(reader.submit(load, i + READ_AHEAD_FRAMES))
+            yield result

@@ -17,22 +17,16 @@ and paths in ``synthetic_movers``, their looks in ``synthetic_bodies`` and their
 """
 from __future__ import annotations
 
-from collections import OrderedDict, deque
-from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
+from collections import OrderedDict
 from typing import Callable, Iterator, Optional, Sequence, Union
 
-import cv2
 import numpy as np
-import yaml
-from scipy.spatial.transform import Rotation
 
-from .base import DatasetDefaults, RGBDFrame
+from .base import DatasetDefaults, RGBDFrame, read_ahead
 from .synthetic_movers import MOVER_PRESETS, Mover, WalkLoop, mover_kinds  # noqa: F401  (some re-exported)
 from .synthetic_planning import MoverPlanner
 from .synthetic_primitives import _EDGES, _NEAR, _SIGNS, TEXEL, Box, add_textures, static_pose
 from .synthetic_primitives import make_texture  # noqa: F401  (re-exported)
-from .tum import CAMERA_FILE, PREFETCH_FRAMES
 
 _LIGHT = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
 
@@ -218,18 +212,11 @@ class SyntheticSequence(DatasetDefaults):
         return ts, np.stack([self.pose(t) for t in ts])
 
     def __iter__(self) -> Iterator[RGBDFrame]:
-        # Rendering a frame costs about as much as tracking it (~40 % of a demo's main thread), and numpy
-        # releases the GIL in its array loops: as a TUM folder's frames are decoded (slam/datasets/tum.py),
-        # a reader thread renders the next frames while this one is tracked. Frames come in order; the
-        # render is a function of the frame index alone, so the thread changes no pixel.
-        load = (lambda i: self.frame(i, cache=False)) if self._kept is None else self._kept_frame
-        with ThreadPoolExecutor(1, thread_name_prefix="dynslam-reader") as reader:
-            ahead = deque(reader.submit(load, i) for i in range(min(PREFETCH_FRAMES, self.n_frames)))
-            for i in range(self.n_frames):
-                frame = ahead.popleft().result()
-                if i + PREFETCH_FRAMES < self.n_frames:
-                    ahead.append(reader.submit(load, i + PREFETCH_FRAMES))
-                yield frame
+        # Rendering a frame costs about as much as tracking it (~40 % of a demo's main thread) and numpy
+        # releases the GIL in its array loops: the next frames render on a reader thread (base.read_ahead).
+        # A render is a function of the frame index alone, so the thread changes no pixel.
+        yield from read_ahead((lambda i: self.frame(i, cache=False)) if self._kept is None else self._kept_frame,
+                              self.n_frames)
 
     def _kept_frame(self, index: int) -> RGBDFrame:
         if index not in self._kept:
@@ -412,33 +399,3 @@ class SyntheticSequence(DatasetDefaults):
     def _plan_movers(self, kinds: Sequence[str]) -> list[Mover]:
         """The movers of ``kinds``, planned against this sequence's camera path (see ``MoverPlanner``)."""
         return MoverPlanner(self).plan(kinds)
-
-
-def write_tum_layout(seq: SyntheticSequence, folder: Union[str, Path], depth_scale: float = 5000.0) -> Path:
-    """Write ``seq`` as a TUM RGB-D folder (rgb/, depth/, lists, groundtruth.txt, camera.yaml) so the CLI
-    and TumDataset can run it like a real recording. Depth is 16-bit PNG, ``depth_scale`` units per metre."""
-    folder = Path(folder)
-    (folder / "rgb").mkdir(parents=True, exist_ok=True)
-    (folder / "depth").mkdir(parents=True, exist_ok=True)
-    rgb_lines, depth_lines, assoc_lines = [], [], []
-    for frame in seq:
-        stamp = f"{frame.timestamp:.6f}"
-        raw = np.clip(np.round(frame.depth.astype(np.float64) * depth_scale), 0, 65535).astype(np.uint16)
-        cv2.imwrite(str(folder / "rgb" / f"{stamp}.png"), frame.rgb)
-        cv2.imwrite(str(folder / "depth" / f"{stamp}.png"), raw)
-        rgb_lines.append(f"{stamp} rgb/{stamp}.png")
-        depth_lines.append(f"{stamp} depth/{stamp}.png")
-        assoc_lines.append(f"{stamp} rgb/{stamp}.png {stamp} depth/{stamp}.png")
-    header = f"# {seq.name} (synthetic, dynslam)\n"
-    (folder / "rgb.txt").write_text(header + "# timestamp filename\n" + "\n".join(rgb_lines) + "\n")
-    (folder / "depth.txt").write_text(header + "# timestamp filename\n" + "\n".join(depth_lines) + "\n")
-    (folder / "associations.txt").write_text("\n".join(assoc_lines) + "\n")
-    ts, poses = seq.groundtruth()
-    quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w, TUM's order
-    gt = [f"{t:.6f} " + " ".join(f"{x:.9f}" for x in (*p[:3, 3], *q)) for t, p, q in zip(ts, poses, quats)]
-    (folder / "groundtruth.txt").write_text(header + "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(gt) + "\n")
-    fx, fy, cx, cy = seq.intrinsics
-    camera = {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "width": seq.width, "height": seq.height,
-              "depth_scale": float(depth_scale)}
-    (folder / CAMERA_FILE).write_text(yaml.safe_dump(camera, sort_keys=False))
-    return folder

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import re
 import warnings
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterator, Optional, Union
 
@@ -25,12 +23,11 @@ import yaml
 
 from slam.core.errors import DynslamError
 
-from .base import DatasetDefaults, RGBDFrame
+from .base import DatasetDefaults, RGBDFrame, read_ahead
 
 PathLike = Union[str, Path]
 
 CAMERA_FILE = "camera.yaml"
-PREFETCH_FRAMES = 2   # frames read ahead on the reader thread
 """Optional intrinsics file beside the lists (written by ``write_tum_layout``); keys fx fy cx cy width
 height depth_scale."""
 
@@ -326,18 +323,12 @@ class TumDataset(DatasetDefaults):
 
     def __iter__(self) -> Iterator[RGBDFrame]:
         # Decoding two PNGs costs ~6 ms a frame; OpenCV releases the GIL while it decodes, so a reader
-        # thread loads the next frames while this one is tracked. Frames still come in order, and at
-        # most PREFETCH_FRAMES wait in memory (closing the iterator early waits for those only).
-        with ThreadPoolExecutor(1, thread_name_prefix="dynslam-reader") as reader:
-            ahead = deque(reader.submit(self._load, i) for i in range(min(PREFETCH_FRAMES, len(self))))
-            for i in range(len(self)):
-                frame, reason = ahead.popleft().result()
-                if i + PREFETCH_FRAMES < len(self):
-                    ahead.append(reader.submit(self._load, i + PREFETCH_FRAMES))
-                if frame is not None:
-                    yield frame
-                else:
-                    self._skip(i, reason)
+        # thread loads the next frames while this one is tracked (base.read_ahead).
+        for i, (frame, reason) in enumerate(read_ahead(self._load, len(self))):
+            if frame is not None:
+                yield frame
+            else:
+                self._skip(i, reason)
 
     def _skip(self, i: int, reason: str) -> None:
         path = self._rgb[i] if reason.startswith("colour") else self._depth[i]
