@@ -103,12 +103,33 @@ def test_the_masks_keep_as_moving_only_what_the_evidence_does_not_contradict():
 
 def test_a_thin_band_of_apparent_motion_is_no_region():
     """A depth edge misplaced by a pose error or the rolling shutter looks moved along a band narrower than
-    the min filter's window: it may stay in a flagged mask, but is never a moving region of its own."""
+    the min filter's window: it may stay in a flagged mask, but is never a moving region of its own (here
+    16 px, 4 cells: wide enough to count as moving evidence; see the next test for a narrower one)."""
     fs = check(lags=(0.5,))
     fs.remember(0.0, wall((300, 0, 640, 480), 1.0), pose_cw(0.0))   # a near board's edge at x = 300 ...
     moved_edge = wall((272, 0, 640, 480), 1.0)                      # ... seen 28 px further left
     moving, known, region = fs.keyframe(None, 0.5, moved_edge, pose_cw(0.0))
     assert moving[:, 272:288].all() and not region.any()
+
+
+def test_a_depth_edge_shifted_just_past_the_window_is_not_grown_into_moving_evidence():
+    """A near board's edge seen 20 px off where the other frame saw it (a pose error, the colour/depth delay
+    on a turn) lies 10 px beyond the min filter's reach: one or two cells of evidence along the edge. Grown
+    over the board (24 px), such a line kept every false flag beside it as moving; it is no moving surface
+    (a body part is wider than 3 cells), so the board there is known and unmoved, and a flag on it goes.
+    The 28-px shift of the test above leaves a band 4 cells wide, which still counts."""
+    fs = check(lags=(0.5,))
+    fs.remember(0.0, wall((300, 0, 640, 480), 1.0), pose_cw(0.0))
+    moving, known, region = fs.keyframe(None, 0.5, wall((280, 0, 640, 480), 1.0), pose_cw(0.0))
+    assert not moving.any() and not region.any() and known[:, 280:330].all()
+    shape = (480, 640)
+    flagged = np.zeros(shape, np.float32)
+    flagged[100:300, 270:330] = 0.9                               # a method's false flag over the edge
+    parts = MaskParts({}, [], [], "noisy_or", shape, motion_region=flagged, prior=None)
+    parts._fused, parts._motion = (np.zeros(shape, np.float32),), (None,)
+    parts.free_space = Evidence(moving, known, region)
+    mask, unmoved = compose_mask(parts)
+    assert not (mask >= 0.5).any() and unmoved[100:300, 270:330].all()
 
 
 @pytest.mark.parametrize("lags", [[-0.5], [0.0]])
