@@ -273,7 +273,7 @@ class SyntheticSequence(DatasetDefaults):
         if not self.movers:
             return ()
         if index not in self._mover_extents:
-            self._note_mover_extents(index, self._cast_frame(index)[2])
+            self._cast_frame(index)      # a cast notes its frame's extents (_cast_frame)
         return self._mover_extents[index]
 
     def _note_mover_extents(self, index: int, face: np.ndarray) -> None:
