@@ -5,6 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
+from frontend.dynamic.base import MethodOutput
 from frontend.dynamic.free_space import Evidence, FreeSpaceCheck
 from frontend.dynamic.keyframe_masks import MaskParts, compose_mask
 from slam.core.camera import PinholeCamera
@@ -84,8 +85,8 @@ def test_the_masks_keep_as_moving_only_what_the_evidence_does_not_contradict():
     shape = (480, 640)
     flagged = np.zeros(shape, np.float32)
     flagged[100:300, 100:300] = 0.9
-    parts = MaskParts({}, [], [], "noisy_or", shape, motion_region=flagged, prior=None)
-    parts._fused, parts._motion = (np.zeros(shape, np.float32),), (None,)
+    nothing_else = {"box_depth": MethodOutput(np.zeros(0), np.zeros(shape, np.float32))}   # no method flags it
+    parts = MaskParts(nothing_else, [1.0], [], "noisy_or", shape, motion_region=flagged, prior=None)
     moving = np.zeros(shape, bool)
     moving[100:200, 100:300] = True                              # the upper half moved in
     known = np.ones(shape, bool)
@@ -125,8 +126,8 @@ def test_a_depth_edge_shifted_just_past_the_window_is_not_grown_into_moving_evid
     shape = (480, 640)
     flagged = np.zeros(shape, np.float32)
     flagged[100:300, 270:330] = 0.9                               # a method's false flag over the edge
-    parts = MaskParts({}, [], [], "noisy_or", shape, motion_region=flagged, prior=None)
-    parts._fused, parts._motion = (np.zeros(shape, np.float32),), (None,)
+    nothing_else = {"box_depth": MethodOutput(np.zeros(0), np.zeros(shape, np.float32))}   # no method flags it
+    parts = MaskParts(nothing_else, [1.0], [], "noisy_or", shape, motion_region=flagged, prior=None)
     parts.free_space = Evidence(moving, known, region)
     mask, unmoved = compose_mask(parts)
     assert not (mask >= 0.5).any() and unmoved[100:300, 270:330].all()
