@@ -46,6 +46,22 @@ def test_in_a_standing_persons_box_only_motion_evidence_counts_and_a_walker_keep
     assert overlap[8:40, 10:20].all() and not overlap[8:40, 20:40].any()
 
 
+def test_a_motion_methods_detections_only_output_is_no_evidence_of_motion_in_the_masks():
+    """flow_epipolar on its first frame (or without a fundamental matrix) flags every person box from the
+    detections alone; with a segmenting method at 0.45 the noisy-OR would pass 0.5 on a person who may
+    stand. Measured, the same output counts."""
+    segment = _box_mask(PERSON) * 0.45
+    for measured, flagged in ((False, False), (True, True)):
+        outputs = {"depth_sdf": MethodOutput(np.zeros(0), segment),
+                   "flow_epipolar": MethodOutput(np.zeros(0), _box_mask(PERSON), motion_measured=measured)}
+        parts = MaskParts(outputs, [0.45, 0.45], [1], "noisy_or", SHAPE, None, None)
+        mask, _ = compose_mask(parts)
+        assert (mask[8:40, 10:30] >= 0.5).all() == flagged and (mask[8:40, 10:30] >= 0.5).any() == flagged
+        assert (parts.motion is None) != measured                # the motion methods' own mask too
+    # A method that does not measure motion is never left out by the flag's default.
+    assert MethodOutput(np.zeros(0)).motion_measured
+
+
 def _people_over(frames: int, motion: RegionMotion, ledger: KeyframeMaskLedger, keyframe_every: int = 5):
     """One person standing 2 m in front of a still camera; a keyframe every ``keyframe_every`` frames.
     Returns the revisions per frame and the still flag per frame."""

@@ -89,6 +89,11 @@ class MethodOutput:
     tracks: Optional[np.ndarray] = None
     track_moving: Optional[np.ndarray] = None
     track_origins: Optional[np.ndarray] = None   # (M,2) where each track was in the previous frame
+    # False when a motion-measuring method measured nothing this frame and its output stands on the
+    # detections alone (flow_epipolar on its first frame, or without a fundamental matrix): ``prob`` keeps
+    # tracking on the safe side, but the keyframe masks of moving surfaces leave ``mask`` out
+    # (``keyframe_masks.fused_pixel_mask``).
+    motion_measured: bool = True
 
     @property
     def flagged(self) -> int:

@@ -64,7 +64,9 @@ Choices where the paper is silent or vague (all in ``FlowEpipolarConfig``):
 * Frames without motion evidence (the first frame; fewer than ``min_tracks`` tracks; F degenerate) use
   the detections only: every sub-box of a dynamic box counts as dynamic. The first frame initialises
   the map, where the conservative choice is safest; one frame later Algorithm 1 releases a still
-  person again (a 0.9 prior meeting a 0.1 likelihood gives a posterior of 0.5, not removed).
+  person again (a 0.9 prior meeting a 0.1 likelihood gives a posterior of 0.5, not removed). Such an
+  output says ``motion_measured=False``: the keyframe masks of moving surfaces leave it out (it shows
+  where the detector saw people, not that they move), tracking keeps its probabilities.
 * Algorithm 2's prior without history and its clamp: ``frontend/dynamic/grid_propagation.py``.
 * Only ``ClassGroups.dynamic`` boxes are examined: the paper considers people, animals and vehicles
   potential dynamic objects and has no passive-object class.
@@ -233,7 +235,7 @@ class FlowEpipolarMethod:
             "motion_evidence": bool(evidence),
         }
         origins = np.zeros((0, 2)) if self._prev_raw is None or len(self._prev_raw) != len(ok) else self._prev_raw[ok]
-        return MethodOutput(prob, mask, info, cur_raw[ok], dyn_track[ok], origins)
+        return MethodOutput(prob, mask, info, cur_raw[ok], dyn_track[ok], origins, motion_measured=evidence)
 
     def _dynamic_tracks(self, ctx: DynamicContext,
                         boxes: list[Detection]) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:

@@ -124,10 +124,14 @@ class MaskParts:
 
 def fused_pixel_mask(outputs: dict[str, MethodOutput], mode: str, weights: list[float],
                      shape: tuple[int, int]) -> Optional[np.ndarray]:
-    """The methods' pixel masks fused like their keypoint probabilities (None if none has a mask)."""
+    """The methods' pixel masks fused like their keypoint probabilities (None if none has a mask). A
+    motion-measuring method's detections-only output (``MethodOutput.motion_measured`` False) is left out:
+    it says where people are, which the segmenting methods say better, not that they move (composited
+    two_walk, seed 0: on keyframe 0 flow_epipolar's whole box and depth_sdf's segment, 0.45 each, flagged a
+    walker who stood at the start of their path for the 9 frames they were in view, 9 k false pixels)."""
     masks, used = [], []
     for weight, out in zip(weights, outputs.values()):
-        if out.mask is not None and np.shape(out.mask) == tuple(shape):
+        if out.mask is not None and np.shape(out.mask) == tuple(shape) and out.motion_measured:
             masks.append(np.asarray(out.mask, np.float32).reshape(1, -1))
             used.append(weight)
     if not masks:
