@@ -50,7 +50,7 @@ def test_a_motion_methods_detections_only_output_is_no_evidence_of_motion_in_the
     """flow_epipolar on its first frame (or without a fundamental matrix) flags every person box from the
     detections alone; with a segmenting method at 0.45 the noisy-OR would pass 0.5 on a person who may
     stand. Measured, the same output counts."""
-    segment = _box_mask(PERSON) * 0.45
+    segment = _box_mask(PERSON)                                # depth_sdf's segment, trusted 0.45
     for measured, flagged in ((False, False), (True, True)):
         outputs = {"depth_sdf": MethodOutput(np.zeros(0), segment),
                    "flow_epipolar": MethodOutput(np.zeros(0), _box_mask(PERSON), motion_measured=measured)}
@@ -58,8 +58,7 @@ def test_a_motion_methods_detections_only_output_is_no_evidence_of_motion_in_the
         mask, _ = compose_mask(parts)
         assert (mask[8:40, 10:30] >= 0.5).all() == flagged and (mask[8:40, 10:30] >= 0.5).any() == flagged
         assert (parts.motion is None) != measured                # the motion methods' own mask too
-    # A method that does not measure motion is never left out by the flag's default.
-    assert MethodOutput(np.zeros(0)).motion_measured
+        assert np.allclose(mask[8:40, 10:30], 0.45 if not measured else 1 - 0.55 ** 2)   # the segment counts
 
 
 def _people_over(frames: int, motion: RegionMotion, ledger: KeyframeMaskLedger, keyframe_every: int = 5):
