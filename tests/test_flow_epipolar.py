@@ -186,7 +186,7 @@ def test_dynamic_sub_boxes_are_removed_and_static_part_of_box_is_kept():
     assert np.all(out.prob[on_patch] == 1.0)
     assert np.all(out.prob[right_column] < 0.5)       # static part of the box keeps its features
     assert np.all(out.prob[outside] < 0.5)
-    assert out.info["dynamic_sub_boxes"] == 6 and out.info["motion_evidence"] and out.motion_measured
+    assert out.info["dynamic_sub_boxes"] == 6 and out.motion_measured
     # Mask: 1 on the dynamic sub-boxes; thresholded, it agrees with the per-keypoint decision.
     assert out.mask.shape == (H, W) and out.mask.dtype == np.float32
     assert np.all(out.mask[int(box.y0) + 1:int(box.y1) - 1, int(box.x0) + 1:int(box.x0 + 2 * sub_w) - 1] == 1.0)
@@ -198,7 +198,7 @@ def test_still_person_keeps_features_and_first_frame_uses_detections_only():
     m = new_method()
     box = patch_box()
     first = step(m, make_ctx(render(0.0), 0, [box]))
-    assert first.info["motion_evidence"] is False and first.motion_measured is False
+    assert first.motion_measured is False
     assert first.info["dynamic_sub_boxes"] == 9         # no flow yet: the whole box is dynamic
     # Second frame: the camera moves, the "person" (patch) stands still at 2.5 m, so it moves in the
     # image like the static scene at that depth -> every sub-box static.
@@ -299,7 +299,7 @@ def test_empty_frames_and_missing_detections():
     # The previous frame had no keypoints: no flow, so the detections alone decide (whole box).
     ctx = make_ctx(render(CAMERA_STEP), 1, [patch_box()])
     out = step(m, ctx)
-    assert out.info["motion_evidence"] is False and out.info["dynamic_sub_boxes"] == 9
+    assert out.motion_measured is False and out.info["dynamic_sub_boxes"] == 9
     inside = patch_box().contains(ctx.frame.uv_raw)
     assert np.all(out.prob[inside] == 1.0) and np.all(out.prob[~inside] < 0.5)
     out = step(m, make_ctx(render(2 * CAMERA_STEP), 2, None))   # no detector output at all

@@ -232,7 +232,6 @@ class FlowEpipolarMethod:
             "cells_removed": int(np.sum(above_threshold(posterior, cfg.remove_threshold))),
             "sub_box_features": int(kp_dynamic.sum()),
             "grid_features": int(np.sum((prob >= 0.5) & ~kp_dynamic)),
-            "motion_evidence": bool(evidence),
         }
         origins = np.zeros((0, 2)) if self._prev_raw is None or len(self._prev_raw) != len(ok) else self._prev_raw[ok]
         return MethodOutput(prob, mask, info, cur_raw[ok], dyn_track[ok], origins, motion_measured=evidence)
