@@ -29,8 +29,9 @@ def wall(box: tuple[int, int, int, int] = None, box_depth: float = 1.5) -> np.nd
     return depth
 
 
-def check(lags=(0.5, 1.0), region_lags=()) -> FreeSpaceCheck:
-    return FreeSpaceCheck(CAMERA, lags, margin_m=0.1, window_px=20, region_lags_s=region_lags)
+def check(lags=(0.5, 1.0), region_lags=(), clear_lags=()) -> FreeSpaceCheck:
+    return FreeSpaceCheck(CAMERA, lags, margin_m=0.1, window_px=20, region_lags_s=region_lags,
+                          clear_lags_s=clear_lags)
 
 
 def blind() -> np.ndarray:
@@ -230,3 +231,58 @@ def test_a_fast_turn_makes_no_region_but_keeps_its_evidence():
     assert found[0.0].region[inner].all()
     moving, known, region = found[0.1]
     assert moving[inner].all() and known[inner].all() and not region.any()
+
+
+def test_a_far_frame_clears_what_the_near_ones_could_not_see_and_never_adds_motion():
+    """On a turn the frames 0.5 and 1 s back saw nothing where the keyframe looks; the frame 2 s back did.
+    Where it saw the same surface, the clear-only lag says "unmoved" (known, not moving); where it saw the
+    wall behind today's box (a walker then 1 m away, or its own drifted pose), it says nothing at all."""
+    box = (200, 100, 360, 400)
+    inner = (slice(box[1] + 10, box[3] - 10), slice(box[0] + 10, box[2] - 10))
+    wall_part = (slice(0, 480), slice(420, 600))
+    found = {}
+    for clear_lags in ((), (2.0,)):
+        fs = check(clear_lags=clear_lags)
+        fs.remember(0.0, wall(), pose_cw(0.0))                   # 2 s back: the wall, nothing in front
+        fs.remember(1.0, blind(), pose_cw(0.0))
+        fs.remember(1.5, blind(), pose_cw(0.0))
+        found[clear_lags] = fs.keyframe(None, 2.0, wall(box), pose_cw(0.0))
+    assert found[()] is None                                     # the near lags could not tell
+    moving, known, region = found[(2.0,)]
+    assert known[wall_part].all() and not moving.any() and not region.any()
+    assert not known[inner].any()                                # the box: in front of the far wall, no say
+
+
+def test_a_far_frame_never_takes_back_what_the_near_ones_saw():
+    """Near frames show the box where it stands now (known, unmoved); a far frame that saw the wall there
+    leaves that as it was, and where near frames saw the box move in, it stays moving."""
+    box = (200, 100, 360, 400)
+    inner = (slice(box[1] + 10, box[3] - 10), slice(box[0] + 10, box[2] - 10))
+    fs = check(clear_lags=(2.0,))
+    fs.remember(0.0, wall(), pose_cw(0.0))                       # 2 s back: no box
+    fs.remember(1.0, wall(box), pose_cw(0.0))
+    fs.remember(1.5, wall(box), pose_cw(0.0))
+    moving, known, _ = fs.keyframe(None, 2.0, wall(box), pose_cw(0.0))
+    assert known[inner].all() and not moving[inner].any()
+    fs = check(clear_lags=(2.0,))
+    fs.remember(0.0, wall(box), pose_cw(0.0))                    # 2 s back the box stood there already ...
+    fs.remember(1.0, wall(), pose_cw(0.0))                       # ... then it was gone ...
+    fs.remember(1.5, wall(), pose_cw(0.0))
+    moving, known, _ = fs.keyframe(None, 2.0, wall(box), pose_cw(0.0))   # ... and is back: it moves
+    assert moving[inner].all()
+
+
+def test_a_later_far_frame_clears_a_keyframe_once_it_comes():
+    """A keyframe that no frame within a second could tell about (the camera turned away and back) is cleared
+    by the frame 2 s after it, handed back then; the frames kept cover the longest lag."""
+    fs = check(clear_lags=(2.0,))
+    assert fs.keyframe("kf", 0.0, wall(), pose_cw(0.0)) is None
+    fs.remember(0.0, wall(), pose_cw(0.0))
+    handed = []
+    for k in range(1, 70):                                        # 30 Hz; blind until 2 s, then the wall
+        handed.append((k, fs.remember(k / 30, blind() if k < 60 else wall(), pose_cw(0.0))))
+    got = [k for k, items in handed if items]
+    assert got == [60]
+    (key, (moving, known, _)), = handed[59][1]
+    assert key == "kf" and known.mean() > 0.95 and not moving.any()
+    assert fs._pending == [] and fs._frames[0].timestamp <= 69 / 30 - 2.0

@@ -62,6 +62,15 @@ Why the numbers:
   a quarter of the raw evidence's cells (walk_stand 4,797 of 19,084), 29 of them on a person; the masks'
   precision rose by 0.01-0.04 on every composite and seed, recall stayed within 0.01 (docs/dynamic.md, "Thin
   evidence").
+- ``clear_lags_s`` 2 and 3 s (``dynamic.mask_clear_lags_s``), before and after: on fr1/rpy's turns the long
+  lags often see nothing of part of a keyframe's view (out of their view, or hidden then): of composited
+  walk_stand's false pixels (seed 0) 27.2 k of 67.9 k were unknown to them. Frames further away see much of
+  it again, but their poses have drifted apart, so their "moved" made more false evidence than it found
+  (the lags 1.5 and 2 s as full lags lowered precision: docs/dynamic.md, "Thin evidence"). Here they may
+  only *clear*: a flagged cell the long lags knew nothing of is unmoved where every far frame that can tell
+  saw it consistent; their "moved" counts for nothing. By 2 s a walker at 0.5 m/s has moved 1 m, clear of
+  where they stood, so their far frames see past them, not them. Cells the long lags know are left as they
+  were, so this can only take pixels out of a mask.
 - Evidence on every 4th pixel in each direction (a 160 x 120 grid at VGA): ~19 k points per comparison,
   four per keyframe: about a millisecond of numpy each; the growth ~1 ms per keyframe.
 """
@@ -117,8 +126,10 @@ class _Keyframe:
     world: np.ndarray                       # (N, 3) world points of those cells
     moving: np.ndarray                      # (N,) bool
     known: np.ndarray                       # (N,) bool
-    due: list[float]                        # later lags not yet compared, ascending
+    due: list[tuple[float, bool]]           # later lags not yet compared (lag, clear-only), ascending
     moved_before: Optional[np.ndarray] = None   # (N,) bool: what the earlier frames alone saw move
+    far_known: Optional[np.ndarray] = None      # (N,) bool: some clear-only frame could tell
+    far_moving: Optional[np.ndarray] = None     # (N,) bool: some clear-only frame saw the cell's space empty
 
 
 class FreeSpaceCheck:
@@ -127,10 +138,11 @@ class FreeSpaceCheck:
     they arrive (see the module doc)."""
 
     def __init__(self, camera: PinholeCamera, lags_s: tuple[float, ...], margin_m: float, window_px: int,
-                 region_lags_s: tuple[float, ...] = ()):
+                 region_lags_s: tuple[float, ...] = (), clear_lags_s: tuple[float, ...] = ()):
         self.camera = camera
         self.lags_s = tuple(sorted(float(v) for v in lags_s))
         self.region_lags_s = tuple(sorted(float(v) for v in region_lags_s)) if self.lags_s else ()
+        self.clear_lags_s = tuple(sorted(float(v) for v in clear_lags_s)) if self.lags_s else ()
         self.margin_m = float(margin_m)
         self._window_px = float(window_px)
         radius = max(1, int(np.ceil(window_px / (2 * _STEP))))
@@ -161,7 +173,9 @@ class FreeSpaceCheck:
         n = len(points)
         record = _Keyframe(key, float(timestamp), tuple(depth.shape), valid, np.where(valid, z, np.nan),
                            points @ T_wc[:3, :3].T + T_wc[:3, 3],
-                           np.zeros(n, bool), np.zeros(n, bool), list(self.lags_s))
+                           np.zeros(n, bool), np.zeros(n, bool),
+                           sorted([(lag, False) for lag in self.lags_s] + [(lag, True) for lag in self.clear_lags_s]),
+                           far_known=np.zeros(n, bool), far_moving=np.zeros(n, bool))
         steady = self._steady(timestamp, T_cw)
         record.moved_before = np.zeros(n, bool)
         for reference in self._earlier(timestamp, self.lags_s):
@@ -175,8 +189,11 @@ class FreeSpaceCheck:
         for reference in self._earlier(timestamp, self.region_lags_s):
             if steady and reference.steady:
                 record.moved_before |= self._test(record, reference)[1]
+        for reference in self._earlier(timestamp, self.clear_lags_s):
+            self._compare(record, reference, clear_only=True)
         self._pending.append(record)
-        return self._pixels(record) if record.known.any() or record.moved_before.any() else None
+        return self._pixels(record) if (record.known.any() or record.moved_before.any()
+                                        or record.far_known.any()) else None
 
     def remember(self, timestamp: float, depth: np.ndarray, T_cw: np.ndarray) -> list[tuple[Any, Evidence]]:
         """A tracked frame: kept while it may serve as an earlier frame, and compared with the pending
@@ -189,25 +206,32 @@ class FreeSpaceCheck:
         reference = _Reference(float(timestamp), grid, cv2.erode(grid, self._kernel), np.asarray(T_cw, float),
                                self._steady(timestamp, T_cw))
         self._frames.append(reference)
-        horizon = timestamp - max(self.lags_s + self.region_lags_s) * 1.5
+        horizon = timestamp - max(self.lags_s + self.region_lags_s + self.clear_lags_s) * 1.5
         while self._frames and self._frames[0].timestamp < horizon:
             self._frames.popleft()
         changed = []
         for record in self._pending:
-            due = [lag for lag in record.due if timestamp >= record.timestamp + lag]
+            due = [d for d in record.due if timestamp >= record.timestamp + d[0]]
             if not due:
                 continue
-            record.due = [lag for lag in record.due if lag not in due]
-            if self._compare(record, reference):
+            record.due = [d for d in record.due if d not in due]
+            # one comparison per kind of lag due (several lags falling due on one frame compare it once)
+            told = [self._compare(record, reference, clear_only) for clear_only in sorted({c for _, c in due})]
+            if any(told):
                 changed.append((record.key, self._pixels(record)))
         self._pending = [r for r in self._pending if r.due]
         return changed
 
-    def _compare(self, record: _Keyframe, ref: _Reference) -> bool:
-        """Fold one frame's evidence into a keyframe's; True if it knew any cell."""
+    def _compare(self, record: _Keyframe, ref: _Reference, clear_only: bool = False) -> bool:
+        """Fold one frame's evidence into a keyframe's; True if it knew any cell. A clear-only frame's
+        goes to ``far_known`` / ``far_moving``, which can only clear cells the other lags knew nothing of."""
         known, moving = self._test(record, ref)
-        record.moving |= moving
-        record.known |= known
+        if clear_only:
+            record.far_moving |= moving
+            record.far_known |= known
+        else:
+            record.moving |= moving
+            record.known |= known
         return bool(known.any())
 
     def _test(self, record: _Keyframe, ref: _Reference) -> tuple[np.ndarray, np.ndarray]:
@@ -234,7 +258,9 @@ class FreeSpaceCheck:
         moving = np.zeros(record.valid.shape, np.uint8)
         known = np.zeros(record.valid.shape, np.uint8)
         moving[record.valid] = record.moving
-        known[record.valid] = record.known
+        # The clear-only lags tell only where the others could not, and only "unmoved": a cell every
+        # far frame that could tell saw consistent (a far frame's "moved" may be its drifted pose).
+        known[record.valid] = record.known | (~record.known & record.far_known & ~record.far_moving)
         # The regions from the earlier frames only: a later frame that sees past a person says they will
         # have left, not that they move now (a person standing, then walking away).
         region = np.zeros(record.valid.shape, np.uint8)

@@ -86,7 +86,8 @@ class DynamicRejector:
         self._people: tuple[list, np.ndarray] = ([], np.zeros(0, bool))   # the frame's person boxes, who stands
         self._keyframe_masks = KeyframeMaskLedger(cfg.still_window_s)
         self._free_space = FreeSpaceCheck(camera, tuple(cfg.mask_free_space_lags_s), cfg.mask_free_space_margin_m,
-                                          cfg.mask_free_space_window_px, tuple(cfg.mask_region_lags_s))
+                                          cfg.mask_free_space_window_px, tuple(cfg.mask_region_lags_s),
+                                          tuple(cfg.mask_clear_lags_s))
         self.people_still = 0       # people standing still in the last frame (region_motion)
         # the last frame's people: their tracks and who stood still (the run's end settles them)
         self._last_people: tuple[list, np.ndarray] = ([], np.zeros(0, bool))

@@ -250,6 +250,12 @@ class DynamicConfig(ConfigSection):
     """Frames this long before a keyframe add to its moving *regions* only (free space; never "unmoved": 0.25 s
     back a walker still covers much of where they are). On a fast turn they still see the part of the view
     the long lags no longer do (fr1/rpy's median turn: 14 degrees in 0.25 s, 56 in 1 s). Needs the lags above."""
+    mask_clear_lags_s: list[Lag] = Field(default_factory=lambda: [2.0, 3.0])
+    """Frames this long before and after a keyframe may only *clear* its flagged pixels, and only those the
+    lags above could not tell about (out of their view on a turn, or hidden then), where every such frame
+    that can tell shows them unmoved (free space). By then a walker at 0.5 m/s has moved 1-1.5 m, clear of
+    where they stood; their "moved" is never evidence (the poses drift apart over seconds). Needs the lags above.
+    Frames are kept for 1.5x the longest lag: 4.5 s, ~20 MB at 30 Hz. Empty = off."""
     mask_free_space_margin_m: float = Field(0.1, ge=0)
     """A point counts as in front of the earlier surface by more than this plus 3 sigma of depth noise."""
     mask_free_space_window_px: int = Field(20, ge=1)
