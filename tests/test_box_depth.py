@@ -331,6 +331,53 @@ def test_the_box_depth_preset_keeps_the_papers_five_seeds():
     """`-c dynamic_box_depth` is the method as its paper describes it; the default seeds past an occluder."""
     from slam.core.config import SlamConfig, apply_yaml, resolve_config_path
 
-    assert SlamConfig().dynamic.box_depth.seed_past_occluder
+    assert SlamConfig().dynamic.box_depth.seed_past_occluder and SlamConfig().dynamic.box_depth.eq8_border_on_body
     preset = apply_yaml(SlamConfig(), resolve_config_path("dynamic_box_depth"))
     assert preset.dynamic.box_depth.seed_past_occluder is False and preset.dynamic.methods == ["box_depth"]
+    assert preset.dynamic.box_depth.eq8_border_on_body is False
+
+
+def test_side_distance_skips_the_sides_that_do_not_count():
+    from frontend.dynamic.box_depth_segmentation import image_sides, side_distance
+
+    g = side_distance(4, 6, (False, True, True, True))        # the left side does not count
+    np.testing.assert_allclose(g[1, :], [1.5, 1.5, 1.5, 1.5, 1.5, 0.5])
+    np.testing.assert_allclose(side_distance(4, 6)[1, :], [0.5, 1.5, 1.5, 1.5, 1.5, 0.5])
+    assert np.isinf(side_distance(3, 3, (False,) * 4)).all()
+    assert image_sides((0, 10, 100, 480), 640, 480) == (False, True, True, False)
+    assert image_sides((5, 10, 100, 400), 640, 480) == (True, True, True, True)
+
+
+def test_a_person_cut_by_the_image_border_keeps_their_pixels_at_the_border():
+    """Eq. 8 trims pixels deeper than the fill's mean next to the box's sides: the fill's overflow into the
+    background. A box side on the image border is where the view ends, not the person: a walker entering past
+    the left border whose body turns away there lost their first 10 columns (composited fr1/rpy walk_stand,
+    keyframe 185). There, pixels on the person's depth layer are measured to the sides inside the image only;
+    a surface the fill follows to the border off the layer is trimmed as before; the paper's preset (no
+    layer) trims both."""
+    depth = np.full((H, W), 4.0, np.float32)
+    person = np.zeros((H, W), bool)
+    person[60:420, 0:80] = True
+    cols = np.arange(W, dtype=np.float32)[None, :] * np.ones((H, 1), np.float32)
+    depth[person] = 2.0 + 0.003 * np.clip(30 - cols[person], 0, None)   # 2.0 m, 2.09 m at the border
+    # A slanted surface from the person's legs to the border, continuous in depth (a desk going away).
+    depth[380:420, 0:40] = (2.0 + 0.012 * (40 - cols[380:420, 0:40])).astype(np.float32)   # 2.48 m at the border
+    box = Detection(0, 52, 88, 428, PERSON, 0.9)
+    frame = make_frame([(2, 240), (40, 240), (120, 240), (2, 410)], depth)
+    ours = BoxDepthMethod(BoxDepthConfig(), ClassGroups()).process(make_ctx(frame, depth, [box]))
+    paper = BoxDepthMethod(BoxDepthConfig(seed_past_occluder=False, eq8_border_on_body=False),
+                           ClassGroups()).process(make_ctx(frame, depth, [box]))
+    np.testing.assert_array_equal(ours.prob, [1, 1, 0, 0])           # the body at the border; not the slant
+    on_body = person & (np.abs(depth - 2.0) <= 0.2)
+    assert ours.mask[on_body].mean() > 0.97
+    assert not ours.mask[380:420, 0:5].any()
+    np.testing.assert_array_equal(paper.prob, [0, 1, 0, 0])          # the paper's Eq. 8 trims the border
+    assert not paper.mask[60:380, 0:5].any()
+    # A box inside the image: the same segment either way.
+    inside_depth = np.full((H, W), 4.0, np.float32)
+    inside_depth[60:420, 200:280] = depth[60:420, 0:80]
+    inside = Detection(192, 52, 288, 428, PERSON, 0.9)
+    a = BoxDepthMethod(BoxDepthConfig(), ClassGroups()).process(make_ctx(frame, inside_depth, [inside]))
+    b = BoxDepthMethod(BoxDepthConfig(eq8_border_on_body=False), ClassGroups()).process(
+        make_ctx(frame, inside_depth, [inside]))
+    np.testing.assert_array_equal(a.mask, b.mask)

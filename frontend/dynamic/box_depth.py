@@ -94,8 +94,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontend.dynamic.base import Detection, DynamicContext, MethodOutput, keypoints_in_mask
-from frontend.dynamic.box_depth_segmentation import (box_pixels, cached_person_layer, flood_fill, overlaps_enough,
-                                                     segment_box)
+from frontend.dynamic.box_depth_segmentation import (box_pixels, cached_person_layer, flood_fill, image_sides,
+                                                     overlaps_enough, segment_box)
 from frontend.dynamic.box_depth_segmentation import (eq8_filter, nearest_valid,  # noqa: F401  (re-exported)
                                                      seed_points, side_distance)
 from frontend.matching import hamming_pairs
@@ -244,9 +244,9 @@ class BoxDepthMethod:
                 continue
             x0, y0, x1, y1 = b
             layer = None
-            if self.cfg.seed_past_occluder:
+            if self.cfg.seed_past_occluder or self.cfg.eq8_border_on_body:
                 layer = cached_person_layer(layers, b, depth)
-            seg, accepted = segment_box(depth[y0:y1, x0:x1], self.cfg, layer)
+            seg, accepted = segment_box(depth[y0:y1, x0:x1], self.cfg, layer, image_sides(b, w, h))
             fallback += accepted < 0
             mask[y0:y1, x0:x1] |= seg
             pdt_boxes.append(b)

@@ -87,19 +87,41 @@ def nearest_valid(depth: np.ndarray, row: int, col: int, radius: int = _SEED_SEA
     return int(rr[k] + r0), int(cc[k] + c0)
 
 
-def side_distance(h: int, w: int) -> np.ndarray:
-    """G_i (Eqs. 5-7): each pixel centre's distance (px) to the nearest side of an h x w box."""
-    gy = np.minimum(np.arange(h) + 0.5, h - np.arange(h) - 0.5)
-    gx = np.minimum(np.arange(w) + 0.5, w - np.arange(w) - 0.5)
+Sides = tuple[bool, bool, bool, bool]   # per box side (left, top, right, bottom): whether it counts
+ALL_SIDES: Sides = (True, True, True, True)
+
+
+def side_distance(h: int, w: int, sides: Sides = ALL_SIDES) -> np.ndarray:
+    """G_i (Eqs. 5-7): each pixel centre's distance (px) to the nearest side of an h x w box, of the
+    ``sides`` that count (none counting: infinite)."""
+    left, top, right, bottom = sides
+    far = np.full(max(h, w), np.inf)
+    rows, cols = np.arange(h) + 0.5, np.arange(w) + 0.5
+    gy = np.minimum(rows if top else far[:h], h - rows if bottom else far[:h])
+    gx = np.minimum(cols if left else far[:w], w - cols if right else far[:w])
     return np.minimum(gy[:, None], gx[None, :])
 
 
-def eq8_filter(region: np.ndarray, depth: np.ndarray, alpha: float, omega: float) -> np.ndarray:
-    """Remove the pixels of ``region`` (bool, box crop) with ``alpha * d_ave - d_i + omega * G_i < 0``."""
+def image_sides(box: tuple[int, int, int, int], width: int, height: int) -> Sides:
+    """Which sides of ``box`` (x0, y0, x1, y1 pixels) lie inside the image: a side on the image border is
+    where the view ends, and the person may go on beyond it."""
+    x0, y0, x1, y1 = box
+    return x0 > 0, y0 > 0, x1 < width, y1 < height
+
+
+def eq8_filter(region: np.ndarray, depth: np.ndarray, alpha: float, omega: float,
+               sides: Sides = ALL_SIDES, layer: Optional[float] = None) -> np.ndarray:
+    """Remove the pixels of ``region`` (bool, box crop) with ``alpha * d_ave - d_i + omega * G_i < 0``.
+    With ``layer`` (the person's depth) and a side of ``sides`` not counting, a pixel within
+    ``_LAYER_HALF_M`` of the layer is measured to the counting sides only."""
     if not region.any():
         return region
     d_ave = float(depth[region].mean())                                         # Eq. 3
-    keep = (alpha * d_ave - depth) + omega * side_distance(*depth.shape) >= 0.0   # Eqs. 4-8
+    deficit = alpha * d_ave - depth                                             # Eq. 4
+    keep = deficit + omega * side_distance(*depth.shape) >= 0.0                 # Eqs. 5-8
+    if layer is not None and not all(sides):
+        on_body = np.abs(depth - np.float32(layer)) <= _LAYER_HALF_M
+        keep |= on_body & (deficit + omega * side_distance(*depth.shape, sides) >= 0.0)
     return region & keep
 
 
@@ -159,17 +181,19 @@ def _ring_depths(box: tuple[int, int, int, int], depth: np.ndarray) -> np.ndarra
     return outer[in_ring]
 
 
-def segment_box(depth: np.ndarray, cfg: BoxDepthConfig, layer: Optional[float] = None) -> tuple[np.ndarray, int]:
+def segment_box(depth: np.ndarray, cfg: BoxDepthConfig, layer: Optional[float] = None,
+                sides: Sides = ALL_SIDES) -> tuple[np.ndarray, int]:
     """Algorithm 1 on the depth crop of one PDT box. Returns the segment (bool, crop shape) and the
     index of the accepted seed, or -1 when no seed passed the height test (then the fill with the largest
     vertical span is returned). The seeds are the paper's five, unless the box's centre lies on something
     ``_OCCLUDER_GAP_M`` nearer than the person's ``layer`` (``person_layer``; a monitor in front of them):
-    then the layer's pixel nearest the centre is tried first."""
+    then the layer's pixel nearest the centre is tried first (``cfg.seed_past_occluder``). Eq. 8 measures the
+    layer's pixels to the box's ``sides`` inside the image only (``image_sides``; ``cfg.eq8_border_on_body``)."""
     h, w = depth.shape
     best, best_span, accepted = np.zeros((h, w), bool), -1, -1
     seeds = seed_points(h, w)
     centre = nearest_valid(depth, *seeds[0])
-    if layer is not None and centre is not None and depth[centre] < layer - _OCCLUDER_GAP_M:
+    if cfg.seed_past_occluder and layer is not None and centre is not None and depth[centre] < layer - _OCCLUDER_GAP_M:
         on = np.argwhere(np.abs(depth - layer) <= _LAYER_HALF_M)
         if len(on):
             d2 = (on[:, 0] - h / 2) ** 2 + (on[:, 1] - w / 2) ** 2
@@ -186,7 +210,7 @@ def segment_box(depth: np.ndarray, cfg: BoxDepthConfig, layer: Optional[float] =
         if span > cfg.height_ratio * h:
             best, accepted = region, k
             break
-    best = eq8_filter(best, depth, cfg.alpha, cfg.omega)
+    best = eq8_filter(best, depth, cfg.alpha, cfg.omega, sides, layer if cfg.eq8_border_on_body else None)
     return _absorb_invalid(best, depth, cfg.invalid_fill_px), accepted
 
 

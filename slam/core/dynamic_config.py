@@ -148,6 +148,11 @@ class BoxDepthConfig(ConfigSection):
     seed_past_occluder: bool = True
     """When the box's centre lies on something in front of the person (a monitor), seed the fill on the
     person's depth layer first (frontend/dynamic/box_depth.py); False: the paper's five seeds only."""
+    eq8_border_on_body: bool = True
+    """Eq. 8 trims pixels deeper than the fill's mean near a box side (overflow into the background). A side on
+    the image border is where the view ends, not the person: there, pixels within 0.2 m of the person's depth
+    layer are measured to the sides inside the image only (a person cut by the border keeps their pixels at
+    it); False: all four sides for every pixel, as the paper prints it."""
 
 
 class FlowEpipolarConfig(ConfigSection):
