@@ -328,7 +328,8 @@ def test_a_monitor_over_the_middle_of_a_persons_box_is_not_taken_for_the_person(
 
 
 def test_the_box_depth_preset_keeps_the_papers_five_seeds():
-    """`-c dynamic_box_depth` is the method as its paper describes it; the default seeds past an occluder."""
+    """`-c dynamic_box_depth` is the method as its paper describes it (five seeds, Eq. 8 to all four sides); the
+    default seeds past an occluder and spares a person's layer at the image border."""
     from slam.core.config import SlamConfig, apply_yaml, resolve_config_path
 
     assert SlamConfig().dynamic.box_depth.seed_past_occluder and SlamConfig().dynamic.box_depth.eq8_border_on_body
