@@ -95,10 +95,9 @@ def side_distance(h: int, w: int, sides: Sides = ALL_SIDES) -> np.ndarray:
     """G_i (Eqs. 5-7): each pixel centre's distance (px) to the nearest side of an h x w box, of the
     ``sides`` that count (none counting: infinite)."""
     left, top, right, bottom = sides
-    far = np.full(max(h, w), np.inf)
     rows, cols = np.arange(h) + 0.5, np.arange(w) + 0.5
-    gy = np.minimum(rows if top else far[:h], h - rows if bottom else far[:h])
-    gx = np.minimum(cols if left else far[:w], w - cols if right else far[:w])
+    gy = np.minimum(np.where(top, rows, np.inf), np.where(bottom, h - rows, np.inf))
+    gx = np.minimum(np.where(left, cols, np.inf), np.where(right, w - cols, np.inf))
     return np.minimum(gy[:, None], gx[None, :])
 
 
