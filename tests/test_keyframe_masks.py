@@ -386,3 +386,30 @@ def test_a_run_leaves_a_held_box_over_nobody_out_of_its_live_mask():
     system.close()
     assert shares[0] > 0.3                # the big box's fill took in the wall while it was the detection
     assert max(shares[3:]) < 0.02         # held beside the small one, over nobody: out of the mask
+
+
+def test_features_off_the_body_and_clear_of_it_are_the_only_ones_freed_of_the_box_prior():
+    """``dynamic.box_prior_on_body``: in a person's box, a feature on the wall behind them (more than a body's
+    reach from their layer) and more than the margin from the person is freed of the prior; one on the person,
+    one on the wall within the margin of their silhouette, one outside the boxes and one without depth are not."""
+    from frontend.dynamic.keyframe_masks import features_off_body
+
+    shape = (480, 640)
+    depth = np.full(shape, 3.5, np.float32)                 # the wall
+    depth[100:400, 280:340] = 1.5                           # the person, 60 px wide
+    depth[120:140, 400:420] = 0.0                           # a hole in the depth, in the box
+    box = (220, 92, 440, 408)
+    region = np.zeros(shape, bool)
+    region[82:418, 210:450] = True                          # the box dilated by 10 px
+    uv = np.array([[300.0, 200.0],    # on the person
+                   [345.0, 200.0],    # wall, 5 px from the person
+                   [420.0, 300.0],    # wall, 80 px from the person
+                   [410.0, 130.0],    # no depth
+                   [100.0, 200.0],    # outside every box
+                   [225.0, 300.0],    # wall, 5 px inside the box's side (the dilation ring counts as person)
+                   [235.0, 300.0]])   # wall, 15 px inside it
+    free = features_off_body(region, [box], depth, {}, uv, margin_px=10)
+    assert free.tolist() == [False, False, True, False, False, False, True]
+    # Without depth for a layer, or without boxes, nothing is freed.
+    assert not features_off_body(region, [box], np.zeros(shape, np.float32), {}, uv, 10).any()
+    assert not features_off_body(region, [], depth, {}, uv, 10).any()

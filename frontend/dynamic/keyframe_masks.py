@@ -36,10 +36,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
+import cv2
 import numpy as np
 
 from frontend.dynamic import RevisedMask
-from frontend.dynamic.base import MethodOutput
+from frontend.dynamic.base import MethodOutput, keypoints_in_mask
 from frontend.dynamic.box_depth_segmentation import cached_person_layer
 from frontend.dynamic.free_space import Evidence
 from frontend.dynamic.fusion import fuse
@@ -189,6 +190,21 @@ def off_body_region(boxes: Sequence[Box], depth: np.ndarray, layers: Optional[di
         np.minimum(near[y0:y1, x0:x1], gap, out=near[y0:y1, x0:x1])
     off = np.isfinite(near) & (near > _BODY_REACH_M) & (depth > 0)
     return off if off.any() else None
+
+
+def features_off_body(prior_region: np.ndarray, boxes: Sequence[Box], depth: np.ndarray, layers: Optional[dict],
+                      uv_raw: np.ndarray, margin_px: float) -> np.ndarray:
+    """Per keypoint (raw pixel coordinates): inside ``prior_region`` (the dilated person boxes) but off every
+    holding box's body (``off_body_region``) and more than ``margin_px`` from every other pixel of the region
+    (the body, its silhouette margin, pixels without depth): a background surface the box merely frames,
+    whose descriptor patch does not reach the person (``DynamicConfig.box_prior_on_body``)."""
+    free = np.zeros(len(uv_raw), bool)
+    off = off_body_region(boxes, depth, layers)
+    if off is None or not len(uv_raw):
+        return free
+    near_person = prior_region & ~off
+    to_person = cv2.distanceTransform((~near_person).view(np.uint8), cv2.DIST_L2, 5)
+    return keypoints_in_mask(off, uv_raw) & (keypoints_in_mask(to_person, uv_raw) > margin_px)
 
 
 def compose_mask(parts: MaskParts) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:

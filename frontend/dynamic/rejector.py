@@ -22,7 +22,8 @@ from frontend.dynamic.box_depth_segmentation import cached_person_layer
 from frontend.dynamic.box_memory import BoxMemory
 from frontend.dynamic.free_space import FreeSpaceCheck
 from frontend.dynamic.fusion import fuse
-from frontend.dynamic.keyframe_masks import KeyframeMaskLedger, MaskParts, compose_mask, still_region, vacated_region
+from frontend.dynamic.keyframe_masks import (KeyframeMaskLedger, MaskParts, compose_mask, features_off_body,
+                                             still_region, vacated_region)
 from frontend.dynamic.region_motion import RegionCarry, RegionMotion, box_centre, confirmed_regions
 from frontend.dynamic.surface_drift import FrameTracks, PersonView
 from slam.core.camera import PinholeCamera
@@ -215,7 +216,11 @@ class DynamicRejector:
             fused = raised
         prior_mask = self._box_prior_mask(ctx)
         if prior_mask is not None:
-            fused = np.maximum(fused, keypoints_in_mask(prior_mask, frame.uv_raw))
+            feature_prior = keypoints_in_mask(prior_mask, frame.uv_raw)
+            if self.cfg.box_prior_on_body:
+                feature_prior[features_off_body(prior_mask > 0, self._person_boxes(ctx, 0), ctx.depth,
+                                                ctx.person_layers, frame.uv_raw, self.cfg.box_prior_dilate_px)] = 0.0
+            fused = np.maximum(fused, feature_prior)
         self.stats.frames += 1
         self.stats.add("fused", int(np.sum(fused >= 0.5)))
         if self.detector is not None and self._region_motion.enabled:

@@ -231,6 +231,14 @@ class DynamicConfig(ConfigSection):
     landmark-admission threshold (backend.landmark_max_dynamic_prob), so nothing inside a person box
     enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 = off."""
     box_prior_dilate_px: int = Field(10, ge=0)
+    box_prior_on_body: bool = False
+    """The prior only where a feature could be on the person: a feature in a person box more than a body's
+    reach (0.7 m) in depth from the person layer of every box holding it, and more than
+    ``box_prior_dilate_px`` from the rest of the boxes, keeps the methods' own probability
+    (``keyframe_masks.features_off_body``), so the desk or wall a box frames may be mapped. Off: measured
+    2026-11-29 (docs/dynamic.md, "The box prior off the body"), it fixes composited two_walk at 150 frames
+    (41.8 -> 19.5 mm, its 202 mm frame gone) and leaves Bonn crowd-480 and fr1/rpy-400 as good or better, but
+    takes the generated three_close over the 1.5x bar (median of seeds 0-4 1.49 -> 1.80x)."""
     motion_region_votes: int = Field(3, ge=0)
     """Detector-free evidence (frontend/dynamic/region_motion.py): a connected region of cpr's mask in
     which at least this many of flow_epipolar's tracks move against the epipolar geometry, and at least
