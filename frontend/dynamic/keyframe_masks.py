@@ -196,8 +196,10 @@ def features_off_body(prior_region: np.ndarray, boxes: Sequence[Box], depth: np.
                       uv_raw: np.ndarray, margin_px: float) -> np.ndarray:
     """Per keypoint (raw pixel coordinates): inside ``prior_region`` (the dilated person boxes) but off every
     holding box's body (``off_body_region``) and more than ``margin_px`` from every other pixel of the region
-    (the body, its silhouette margin, pixels without depth): a background surface the box merely frames,
-    whose descriptor patch does not reach the person (``DynamicConfig.box_prior_on_body``)."""
+    (the body, the boxes' dilation ring, pixels without depth): a background surface the box merely frames
+    (``DynamicConfig.box_prior_on_body``). The margin is the boxes' own silhouette margin
+    (``box_prior_dilate_px``); ORB's descriptor patch (15 px at level 0) may still reach the person, and a
+    margin that keeps it clear at every pyramid level lost the case the switch is for (docs/dynamic.md)."""
     free = np.zeros(len(uv_raw), bool)
     off = off_body_region(boxes, depth, layers)
     if off is None or not len(uv_raw):
