@@ -1,7 +1,7 @@
 """End-to-end runs on the real TUM sequences in ../shared/data (skipped where that folder is absent).
 
-Kept short: fr1/rpy runs its first 120-160 frames only; the full-sequence accuracy gates are in
-test_accuracy_gates.py.
+Kept short: fr1/rpy runs its first 160 frames only (the blackout); the full-sequence accuracy gates, among
+them fr1/rpy-400 with every frame tracked, are in test_accuracy_gates.py.
 """
 from __future__ import annotations
 
@@ -94,26 +94,6 @@ def test_fr1_desk_9frames_warns_about_missing_files_and_tracks_all_nine(tmp_path
     assert len(pose_lines(tmp_path / "out" / "trajectory.txt")) == 9
     report = evaluate_files(root / "groundtruth.txt", tmp_path / "out" / "trajectory.txt")
     assert report.ate.rmse < 0.02
-
-
-# --- fr1/rpy: fast rotation, first 120 frames ------------------------------------------------------
-
-@pytest.fixture(scope="module")
-def rpy_run(tmp_path_factory):
-    root = real(RPY)
-    out = tmp_path_factory.mktemp("rpy") / "results"
-    _, summary = run_pipeline(root, out, max_frames=120)
-    return root, out, summary
-
-
-@pytest.mark.slow
-def test_fr1_rpy_first_120_frames_all_tracked_with_ate_below_3cm(rpy_run):
-    root, out, summary = rpy_run
-    assert summary["frames"] == summary["tracked"] == 120
-    assert summary["lost"] == 0
-    report = evaluate_files(root / "groundtruth.txt", out / "trajectory.txt")
-    assert report.ate.n_matched == 120
-    assert report.ate.rmse < 0.03, report.ate.rmse
 
 
 # --- fault injection -------------------------------------------------------------------------------
