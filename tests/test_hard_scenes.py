@@ -6,12 +6,14 @@ standing (not in the exact moving mask) then walking; a person cut by the border
 than half of them is in view.
 
 SLAM checks (slow) are the issue's bar for generated hard scenes: ATE within 1.5x of the same camera path
-without people, and no tracked frame more than 5 cm off (a frame may be LOST instead). The ATE bar is the
-median over seeds 0-2 of SLAM's random choices (``SEEDS``), the 5 cm bound holds for each. Where dynslam
-does not meet it yet the test is a strict xfail with the measured numbers: the day it passes, the xfail
-must go.
+without people, and no tracked frame more than 5 cm off (a frame may be LOST instead). For ``three_close``
+the ATE bar is the median over seeds 0-2 of SLAM's random choices (``SEEDS``), for the other scenes it holds
+at seed 0 (``MEDIAN_OF_SEEDS`` says why); the 5 cm bound holds for every run. Where dynslam does not meet it
+yet the test is a strict xfail with the measured numbers: the day it passes, the xfail must go.
 """
 from __future__ import annotations
+
+import itertools
 
 import cv2
 import numpy as np
@@ -23,6 +25,7 @@ from frontend.dynamic.base import keypoints_in_mask
 from frontend.dynamic.region_motion import RegionMotion
 from slam.run.dynamic_eval import evaluate_synthetic, median_ate_ratio, scene_detector
 from slam.run.run_config import seeded
+from slam.runtime.system import System
 
 FRAMES = 150
 MAX_FRAME_ERROR_M = 0.05     # the issue's bar: a tracked frame further off than this should have been LOST
@@ -32,13 +35,18 @@ SEEDS = (0, 1, 2)
 depth_sdf's pairs; ``seeded``), the issue's own protocol for Bonn crowd. Where people cover most of the view
 one seed's ratio says little: three_close gave 1.49, 1.36, 1.45, 1.82, 1.79 with seeds 0-4 (2026-11-27,
 commit c34ea72; ``python tools/hard_scenes.py three_close --repeats 5``)."""
+MEDIAN_OF_SEEDS = frozenset({"three_close"})
+"""The scenes held on the median over ``SEEDS``: those whose seeds straddle the bar. The others' seeds lie
+well inside it (seeds 0 / 1 / 2, 2026-11-29: close_pass 1.02 / 1.06 / 1.05x, stand_walk 1.33 / 1.23 / 1.27x,
+border 1.12 / 1.20 / 1.15x), so seed 0 alone, held to the bar as it is, says as much for a third of the time:
+two more 150-frame runs per scene cost ~3 minutes of test time in a suite that must stay within 15."""
 
 pytestmark = pytest.mark.slow   # building the four scenes alone takes ~20 s
 
 
 @pytest.fixture(scope="module")
 def scenes() -> dict[str, HardScene]:
-    """Each scene's frames are rendered once for all its runs here (three seeds, stand_walk four times):
+    """Each scene's frames are rendered once for all its runs here (three_close three times, stand_walk twice):
     rendering is most of a run's time; ~0.4 GB per scene, freed with the module."""
     scenes = {name: HardScene(name, n_frames=FRAMES) for name in HARD_SCENES}
     for scene in scenes.values():
@@ -103,8 +111,8 @@ def test_border_person_is_cut_and_missed_while_mostly_out_of_view(scenes):
     assert detected                                     # and found once enough of them is in view
 
 
-def test_scenes_are_deterministic():
-    a, b = HardScene("close_pass", n_frames=FRAMES), HardScene("close_pass", n_frames=FRAMES)
+def test_scenes_are_deterministic(scenes):
+    a, b = scenes["close_pass"], HardScene("close_pass", n_frames=FRAMES)   # a: built and kept by the fixture
     i = int(np.argmax(a.coverage))
     assert np.array_equal(a.frame(i).rgb, b.frame(i).rgb) and a.detector_misses == b.detector_misses
 
@@ -115,11 +123,17 @@ def test_unknown_scene_names_the_choices():
 
 
 @pytest.fixture(scope="module")
-def clean_runs() -> list:
-    """The same camera path without people, once per seed of ``SEEDS``."""
+def clean_run():
+    """The same camera path without people at a seed of ``SEEDS``, each run once (lazily)."""
     seq = synthetic_sequence(FRAMES)
     seq.keep_frames()
-    return [evaluate_synthetic(seq, seeded(synthetic_config(seq, preset="dynamic_all"), seed)) for seed in SEEDS]
+    runs = {}
+
+    def run(seed: int):
+        if seed not in runs:
+            runs[seed] = evaluate_synthetic(seq, seeded(synthetic_config(seq, preset="dynamic_all"), seed))
+        return runs[seed]
+    return run
 
 
 # Scenes that miss the bar, with their measured numbers (python tools/hard_scenes.py): none today.
@@ -156,14 +170,16 @@ def scene_runs(scenes):
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=_NOT_YET[n], strict=True))
                                   if n in _NOT_YET else n for n in HARD_SCENES])
-def test_slam_on_hard_scene_stays_near_the_clean_path(name, scenes, scene_runs, clean_runs):
+def test_slam_on_hard_scene_stays_near_the_clean_path(name, scenes, scene_runs, clean_run):
+    seeds = SEEDS if name in MEDIAN_OF_SEEDS else SEEDS[:1]
     # seed 0's run is the one the other tests look at
-    runs = [scene_runs(name)[0]] + [_evaluate(scenes[name], seed) for seed in SEEDS[1:]]
-    for seed, run in zip(SEEDS, runs):
+    runs = [scene_runs(name)[0]] + [_evaluate(scenes[name], seed) for seed in seeds[1:]]
+    clean_runs = [clean_run(seed) for seed in seeds]
+    for seed, run in zip(seeds, runs):
         assert run.max_error <= MAX_FRAME_ERROR_M, f"seed {seed}: a tracked frame is {run.max_error:.3f} m off"
     ratio = median_ate_ratio(runs, clean_runs)
     per_seed = ", ".join(f"{r.ate_rmse * 1e3:.1f} / {c.ate_rmse * 1e3:.1f} mm" for r, c in zip(runs, clean_runs))
-    assert ratio <= MAX_ATE_RATIO, f"median ATE ratio {ratio:.2f} over seeds {SEEDS} ({per_seed})"
+    assert ratio <= MAX_ATE_RATIO, f"median ATE ratio {ratio:.2f} over seeds {seeds} ({per_seed})"
 
 
 SILHOUETTE_PX = 3   # ORB corners on a silhouette mix person and background: left out of both counts
@@ -251,9 +267,18 @@ def test_the_surface_alone_finds_the_standing_person_through_the_whole_front_end
     surface's window (1 s), and moving again within a few frames of starting to walk (0.15 m at 1 m/s)."""
     monkeypatch.setattr(RegionMotion, "_stands_still", lambda self, track, centre_w, now: None)
     scene, still = scenes["stand_walk"], []
-    _evaluate(scene, observer=lambda frame, output, system: still.append(system.dynamic_filter.people_still))
     window = int(np.ceil(1.0 * scene.fps))
     walk_start = next(i for i in range(FRAMES) if scene.dynamic_mask(i).any())
+    # _evaluate's set-up, up to 25 frames (0.8 s) into the walk: what the asserts need, for two thirds of a run
+    system = System(seeded(synthetic_config(scene, preset="dynamic_all"), 0),
+                    detector=scene_detector(scene, margin_px=8), sequence_name=scene.name)
+    try:
+        for frame in itertools.islice(scene, walk_start + 25):
+            system.process(frame.rgb, frame.depth, frame.timestamp, frame.index)
+            still.append(system.dynamic_filter.people_still)
+    finally:
+        system.close()
+    assert len(still) == walk_start + 25
     assert not any(still[:window])
     assert all(n == 1 for n in still[window + 2:walk_start])
     assert not any(still[walk_start + 8:])
