@@ -175,13 +175,18 @@ class LocalMapper:
         self.graph.sync()
         self._pull_estimates()
 
-    def finish(self, global_adjustment: bool = False) -> None:
-        """End of a run: every update applied (and with ``global_adjustment`` one adjustment of the whole
-        map), estimates in the map, the graph's worker (if any) stopped."""
+    def settle(self, global_adjustment: bool = False) -> None:
+        """Every update applied (and with ``global_adjustment`` one adjustment of the whole map), estimates
+        in the map: what ``finish`` leaves, with the graph's worker still running (a caller that reads the
+        map a run would end with, then edits the graph on)."""
         self.graph.sync()
         if global_adjustment and self.map.num_keyframes:
             self.graph.optimize_all()
         self._pull_estimates()
+
+    def finish(self, global_adjustment: bool = False) -> None:
+        """End of a run: ``settle``, then the graph's worker (if any) stopped."""
+        self.settle(global_adjustment)
         self.graph.close()
 
     def _pull_estimates(self) -> None:

@@ -42,27 +42,24 @@ def _walk(loop: bool, renders: dict, revisit_ratio: float = 0.0) -> tuple[System
 
 @pytest.fixture(scope="module")
 def walks(renders):
-    """The walk with loop closing on, left open for the tests that read and edit its graph."""
+    """The walk with loop closing on, settled as ``close()`` leaves a run (every update applied, the final
+    adjustment done) but with its worker running, for the tests that read and edit its graph; and the ATE
+    of the trajectory a run writes, taken here, before any test edits the graph."""
     with pytest.MonkeyPatch.context() as mp:
         _inject_drift(mp)
         on, gt = _walk(True, renders)
-    return on, gt
+    on.mapper.settle(on.config.backend.final_global_ba)
+    return on, gt, _ate(on, gt)
 
 
 @pytest.fixture(scope="module")
-def written_ates(renders):
-    """ATE of the trajectories the runs with loop closing on and off write: after ``close()`` (every
-    update applied, the final adjustment done), which is what a user gets; and the closed run with loop
-    closing off (``walks`` stays open for the tests that edit its graph)."""
-    ates, systems = [], []
+def loops_off(renders):
+    """The same walk with loop closing off, closed: (ATE of the trajectory it writes, the system)."""
     with pytest.MonkeyPatch.context() as mp:
         _inject_drift(mp)
-        for loop in (True, False):
-            system, gt = _walk(loop, renders)
-            system.close()
-            ates.append(_ate(system, gt))
-            systems.append(system)
-    return ates[0], ates[1], systems[1]
+        system, gt = _walk(False, renders)
+        system.close()
+    return _ate(system, gt), system
 
 
 def _ate(system: System, gt: np.ndarray) -> float:
@@ -72,9 +69,9 @@ def _ate(system: System, gt: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-def test_loop_found_and_ate_at_least_halved(walks, written_ates):
-    on, gt = walks
-    ate_on, ate_off, off = written_ates
+def test_loop_found_and_ate_at_least_halved(walks, loops_off):
+    on, gt, ate_on = walks
+    ate_off, off = loops_off
     detected = [e for e in on.loop_closer.loops if e.source == "detected"]
     assert detected and any(e.active for e in detected)
     assert not off.loop_closer.loops
@@ -107,7 +104,7 @@ def test_second_lap_after_the_loop_adds_few_keyframes(renders):
 
 @pytest.mark.slow
 def test_fused_landmarks_link_both_sides_of_the_loop(walks):
-    on, _ = walks
+    on, _, _ = walks
     edge = next(e for e in on.loop_closer.loops if e.source == "detected")
     slam_map = on.mapper.map
     assert edge.fused_landmarks >= 30
@@ -128,7 +125,7 @@ def test_fused_landmarks_link_both_sides_of_the_loop(walks):
 
 @pytest.mark.slow
 def test_wrong_loop_is_removed_and_moves_nothing(walks):
-    on, gt = walks
+    on, gt, _ = walks
     before = on.trajectory()[1].copy()
     n_kf = on.mapper.map.num_keyframes
     # A loop between a keyframe of lap 1 and the last one, 0.5 m and 20 degrees off the truth.
@@ -151,7 +148,7 @@ def test_loop_edges_are_exported_with_the_graph(walks, tmp_path):
     from backend.graph_export import export_g2o, graph_edges_from_mapper, loop_edges, mapper_keyframes
     import gtsam
 
-    on, _ = walks
+    on, _, _ = walks
     edges = graph_edges_from_mapper(on.mapper) + loop_edges(on.loop_closer.loops, 0.02, 1.0)
     ids, _, poses = mapper_keyframes(on.mapper)
     export_g2o(tmp_path / "g.g2o", ids, poses, edges)
