@@ -1,6 +1,6 @@
 """Binary k-majority clustering in Hamming space, the building block of the BoW vocabulary.
 
-Descriptors are uint8 (N, 32) ORB strings. Distances are XOR + a popcount table, chunked so the
+Descriptors are uint8 (N, 32) ORB strings. Distances are XOR + popcount (``slam.core.descriptors``), chunked so the
 (rows, k, 32) temporaries stay ~10 MB; centres are per-bit majorities (k-medians in Hamming space),
 seeded k-means++ style. All nodes of one tree level are clustered together in one vectorised pass.
 """
@@ -9,14 +9,10 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from slam.core.descriptors import hamming
+
 DESCRIPTOR_BYTES = 32
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
 _CHUNK = 1 << 15  # rows per chunk of the (rows, k, 32) XOR tensors, bounds memory at ~10 MB per k=10
-
-
-def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distances between broadcastable uint8 descriptor arrays (last axis = bytes) as int32."""
-    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=-1, dtype=np.int32)
 
 
 def row_distances(x: np.ndarray, centres: np.ndarray) -> np.ndarray:

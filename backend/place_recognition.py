@@ -8,7 +8,7 @@ Three pieces:
     ``k`` branches and at most ``levels`` levels, as in DBoW2. All groups (tree nodes) of one level are
     clustered *together* in one vectorised pass, so training has Python loops only over levels,
     k-means++ picks and iterations, never over descriptors or nodes. ``transform`` descends the tree
-    level by level for all descriptors at once (Hamming distance = XOR + 256-entry popcount table).
+    level by level for all descriptors at once (Hamming distance = XOR + popcount, `slam.core.descriptors`).
     Leaves are the words; each word has an idf weight ``log(n_docs / n_docs_containing_word)`` from the
     training set (a "document" is one image when ``train`` gets a list of per-image arrays, else one
     descriptor).

@@ -1,7 +1,7 @@
 """Descriptor matching: by projection into the current frame, and brute force with a ratio test.
 
 Both are vectorised: candidate pairs come from a k-d tree in one call, Hamming distances from a
-popcount table over the XORed descriptor bytes, and "best per map point" / "one map point per
+popcount of the XORed descriptors (``slam.core.descriptors``), and "best per map point" / "one map point per
 keypoint" are resolved by sorting rather than by Python loops.
 """
 from __future__ import annotations
@@ -13,15 +13,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.core.camera import PinholeCamera
+from slam.core.descriptors import hamming
 from slam.core.frame import FeatureFrame, MapPoints
-
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint16)
-
-
-def hamming_pairs(des_a: np.ndarray, des_b: np.ndarray) -> np.ndarray:
-    """Hamming distance between row i of des_a and row i of des_b (both (N,32) uint8)."""
-    return _POPCOUNT[np.bitwise_xor(des_a, des_b)].sum(axis=1).astype(np.int32)
-
 
 @dataclass
 class ProjectionMatches:
@@ -75,7 +68,7 @@ def search_by_projection(frame: FeatureFrame, points: MapPoints, T_cw: np.ndarra
     pi, ki = pi[ok], ki[ok]
     if len(pi) == 0:
         return result
-    ham = hamming_pairs(points.descriptors[pi], frame.descriptors[ki])
+    ham = hamming(points.descriptors[pi], frame.descriptors[ki])
     best, second = _best_two(pi, ham)
     accept = ham[best] <= max_distance
     # The ratio test only rejects when the runner-up lies on the same level (as in ORB-SLAM).

@@ -17,12 +17,14 @@ from frontend.dynamic.cpr_icp import _Rows, correlation_scores, robust_scale
 from slam.core.dynamic_config import CprConfig
 
 
-@pytest.mark.parametrize("lengths", [[150] * 10, [150, 37, 0, 150, 1, 2, 90, 0, 150, 11]])
+@pytest.mark.parametrize("lengths", [[150] * 10, [150, 37, 0, 150, 1, 2, 90, 0, 150, 11], [151, 4, 0, 150, 3, 1],
+                                     [1], [2, 1, 0]])   # even and odd widths: every row's middle in one column
 def test_segment_medians_are_numpy_medians(lengths):
     rng = np.random.default_rng(len(lengths) + sum(lengths))
     starts = np.concatenate([[0], np.cumsum(lengths)])
     values = rng.gamma(2.0, 0.02, starts[-1])
-    values[::7] = values[1::7][: len(values[::7])]           # exact ties, as distances to one point give
+    ties = values[1::7].copy()
+    values[:7 * len(ties):7] = ties                          # exact ties, as distances to one point give
     rows = _Rows(starts)
     med, scale = rows.medians(values), rows.robust_scales(values, 0.01)
     for j, (a, b) in enumerate(zip(starts[:-1], starts[1:])):

@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from frontend.matching import hamming_pairs, match_brute_force, search_by_projection
+from frontend.matching import match_brute_force, search_by_projection
+from slam.core.descriptors import hamming as hamming_pairs
 from frontend.orb_extractor import OrbExtractor, features_per_level
 from slam.core.camera import PinholeCamera
 from slam.core.config import load_config

@@ -98,7 +98,7 @@ from frontend.dynamic.box_depth_segmentation import (box_pixels, cached_person_l
                                                      overlaps_enough, segment_box)
 from frontend.dynamic.box_depth_segmentation import (eq8_filter, nearest_valid,  # noqa: F401  (re-exported)
                                                      seed_points, side_distance)
-from frontend.matching import hamming_pairs
+from slam.core.descriptors import hamming
 from slam.core.dynamic_config import BoxDepthConfig, ClassGroups
 
 _MAX_HAMMING = 50            # descriptor distance cap for frame-to-frame matching (ORB-SLAM TH_LOW)
@@ -135,14 +135,6 @@ def composite(img: np.ndarray, uv: np.ndarray, skip_zero: bool = False) -> np.nd
     return (centre + neigh.mean(axis=1)) / 2.0
 
 
-def _hamming(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
-    """Row-wise Hamming distance of two (P,32) uint8 descriptor arrays."""
-    if hasattr(np, "bitwise_count"):                  # numpy >= 2: hardware popcount on 4 words
-        x = np.ascontiguousarray(desc_a).view(np.uint64) ^ np.ascontiguousarray(desc_b).view(np.uint64)
-        return np.bitwise_count(x).sum(axis=1).astype(np.int64)
-    return hamming_pairs(desc_a, desc_b).astype(np.int64)
-
-
 def _first_per_group(groups: np.ndarray, keys: np.ndarray) -> np.ndarray:
     """Index of the smallest (non-negative, < 2**20) key in each group: one argsort on a packed key."""
     order = np.argsort(groups.astype(np.int64) * (1 << 20) + keys, kind="stable")
@@ -161,7 +153,7 @@ def match_descriptors(desc_a: np.ndarray, uv_a: np.ndarray, desc_b: np.ndarray, 
     if len(pairs) == 0:
         return np.zeros((0, 2), int)
     ia, ib = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-    ham = _hamming(desc_a[ia], desc_b[ib])
+    ham = hamming(desc_a[ia], desc_b[ib])
     keep = ham <= max_distance
     ia, ib, ham = ia[keep], ib[keep], ham[keep]
     if len(ia) == 0:

@@ -143,14 +143,19 @@ Time (2-core machine shared with other jobs; ``python tools/cpr_timing.py --fram
 medians per frame): with ``kdtree`` cloud 8.6 ms (sampling, voxels, MLS, dense target), K-Means 1.8, target
 tree 2.0, sub-poses 15.4, correlation 7.3, mask 0.7: process 37.1 ms. With ``projective`` (default): cloud
 7.8, K-Means 1.8, target grid 0.7, sub-poses 8.9, correlation 2.4, mask 0.7: process 22.6 ms. What is left
-in the sub-poses is per-iteration numpy work on ~1500 points x 9 candidates (robust-scale medians ~40 %,
-the window gather, the batched Kabsch), in the cloud the MLS (~4 ms). On the 480 Bonn crowd frames the raw
+in the sub-poses is per-iteration numpy work on ~1500 points x 9 candidates (the window gather, the batched
+Kabsch; the robust-scale medians were ~40 % until 2026-12-01, below), in the cloud the MLS (~4 ms). On the 480 Bonn crowd frames the raw
 masks of the two associations overlap with IoU 0.62 (dynamic pixels 19.1 % -> 20.4 %). Bonn crowd ATE RMSE,
 kdtree -> projective: default config (all four methods) 0.0116 -> 0.0117 m; ``-c dynamic_cpr`` (seed 0)
 0.124 -> 0.105 m. Hard scenes (``tools/hard_scenes.py``), cpr per-feature precision / recall: close_pass
 0.027 / 0.993 -> 0.026 / 0.993, three_close 0.427 / 0.650 -> 0.461 / 0.749, stand_walk 0.020 / 1.000 ->
 0.018 / 0.967, border 0.019 / 0.946 -> 0.018 / 0.948. ``association=kdtree, score_max_distance=0`` gives
 main's masks byte for byte (480 / 480 Bonn frames).
+The robust-scale medians (2026-12-01) pad every sub-cloud's row so that its middle lands in one shared column and
+select only that column (``_Rows``), instead of selecting every row's own middle positions: the same bits
+(``python tools/cpr_timing.py --compare``: 150 / 150 Bonn frames identical), sub-poses 14.3 -> 9.7 ms and
+process 32.5 -> 25.4 ms (sums of stage medians; means of three alternating runs of ``python tools/cpr_timing.py
+--frames 150`` each, on a machine whose medians moved 26-39 ms between identical runs).
 The paper reports 213 ms on a Jetson Orin.
 """
 from __future__ import annotations

@@ -75,34 +75,42 @@ def t_weight(r: np.ndarray, scale, nu: float) -> np.ndarray:
 
 
 class _Rows:
-    """Segments [starts[j], starts[j+1]) of a flat array laid out as the rows of a +inf-padded (k, width)
-    table: per-segment medians are then one row-wise partition at the middle positions instead of a
-    ``np.median`` call per segment and value array (~40 us each, ~90 calls per frame)."""
+    """Segments [starts[j], starts[j+1]) of a flat array laid out as the rows of a (k, width) table padded
+    so that every row's lower middle order statistic lands in one column: per-segment medians are then one
+    row-wise partition at that column instead of a ``np.median`` call per segment and value array (~40 us
+    each, ~90 calls per frame)."""
 
     def __init__(self, starts: np.ndarray):
         self.lengths = np.diff(starts)
         self.k, self.width = len(self.lengths), max(int(self.lengths.max(initial=0)), 1)
         self.segment = np.repeat(np.arange(self.k), self.lengths)       # segment of every value
+        # A row holds lead[j] values of -inf, its segment, then +inf: its order statistic r sits in column
+        # lead[j] + r, so the lower middle one ((L - 1) // 2) in column (width - 1) // 2 for every row
+        # (0 <= lead <= width - L for all L <= width). The upper middle (L // 2) is the next value up.
+        self.column = (self.width - 1) // 2
+        self.lead = self.column - np.maximum(self.lengths - 1, 0) // 2
         if np.all(self.lengths == self.width):
             self.slot = None                                            # equal segments: a plain reshape
         else:
-            self.slot = self.segment * self.width + (np.arange(int(starts[-1])) - np.repeat(starts[:-1], self.lengths))
+            self.slot = (self.segment * self.width + np.repeat(self.lead, self.lengths)
+                         + (np.arange(int(starts[-1])) - np.repeat(starts[:-1], self.lengths)))
 
     def medians(self, values: np.ndarray) -> np.ndarray:
         """``np.median`` of every segment, bit for bit (it is the mean of the two middle order statistics,
-        (a + b) / 2, which sorting gives exactly); NaN for an empty segment."""
+        (a + b) / 2, which a selection gives exactly); NaN for an empty segment."""
         if self.slot is None:
             table = values.reshape(self.k, self.width)
         else:
-            table = np.full(self.k * self.width, np.inf)
-            table[self.slot] = values
-            table = table.reshape(self.k, self.width)
-        lo, hi = np.maximum(self.lengths - 1, 0) // 2, self.lengths // 2
-        # Only the middle order statistics are needed: a selection of those positions (the same values a
-        # full sort puts there) is ~5x cheaper than the row-wise sort (10 x 1500 values).
-        table = np.partition(table, np.unique(np.concatenate([lo, hi])), axis=1)
-        rows = np.arange(self.k)
-        med = (table[rows, lo] + table[rows, hi]) / 2
+            table = np.full((self.k, self.width), np.inf)
+            table[:, :self.column] = -np.inf        # every row's lead lies in these columns (the rest: +inf)
+            table.reshape(-1)[self.slot] = values
+        # One selection at the shared column (~6x cheaper than a selection at every row's own middle
+        # positions, 10 x 1350 values); the upper middle of an even row is the smallest value above it.
+        c = self.column
+        table = np.partition(table, c, axis=1)
+        lo = table[:, c]
+        hi = np.where(self.lengths % 2 == 0, table[:, c + 1:].min(axis=1, initial=np.inf), lo)
+        med = (lo + hi) / 2
         return np.where(self.lengths > 0, med, np.nan)
 
     def robust_scales(self, values: np.ndarray, floor: float) -> np.ndarray:
