@@ -133,6 +133,18 @@ def cached_person_layer(layers: dict, box: tuple[int, int, int, int], depth: np.
     return layers[box]
 
 
+def layer_fill(box: tuple[int, int, int, int], depth: np.ndarray, layers: Optional[dict]) -> float:
+    """Share of ``box``'s pixels within ``_LAYER_HALF_M`` of its person layer (every 2nd pixel each way, as
+    the layer's histogram samples it); 1 for a box without a layer (too little depth to tell: all body)."""
+    layers = {} if layers is None else layers
+    layer = cached_person_layer(layers, box, depth)
+    x0, y0, x1, y1 = box
+    crop = depth[y0:y1:_LAYER_PIXEL_STEP, x0:x1:_LAYER_PIXEL_STEP]
+    if layer is None or crop.size == 0:
+        return 1.0
+    return float(np.count_nonzero((crop > 0) & (np.abs(crop - np.float32(layer)) <= _LAYER_HALF_M)) / crop.size)
+
+
 def person_layer(box: tuple[int, int, int, int], depth: np.ndarray) -> Optional[float]:
     """The depth (m) of the person in a box (x0, y0, x1, y1 pixels of ``depth``): of the peaks of the box's
     depth histogram that hold at least ``_LAYER_MIN_SHARE`` of its pixels within ``_LAYER_HALF_M``, the one

@@ -41,7 +41,7 @@ import numpy as np
 
 from frontend.dynamic import RevisedMask
 from frontend.dynamic.base import MethodOutput, keypoints_in_mask
-from frontend.dynamic.box_depth_segmentation import cached_person_layer
+from frontend.dynamic.box_depth_segmentation import cached_person_layer, layer_fill
 from frontend.dynamic.free_space import Evidence
 from frontend.dynamic.fusion import fuse
 from frontend.dynamic.region_motion import PersonTrack
@@ -193,17 +193,29 @@ def off_body_region(boxes: Sequence[Box], depth: np.ndarray, layers: Optional[di
 
 
 def features_off_body(prior_region: np.ndarray, boxes: Sequence[Box], depth: np.ndarray, layers: Optional[dict],
-                      uv_raw: np.ndarray, margin_px: float) -> np.ndarray:
+                      uv_raw: np.ndarray, margin_px: float, max_fill: float = 1.0) -> np.ndarray:
     """Per keypoint (raw pixel coordinates): inside ``prior_region`` (the dilated person boxes) but off every
     holding box's body (``off_body_region``) and more than ``margin_px`` from every other pixel of the region
     (the body, the boxes' dilation ring, pixels without depth): a background surface the box merely frames
     (``DynamicConfig.box_prior_on_body``). The margin is the boxes' own silhouette margin
     (``box_prior_dilate_px``); ORB's descriptor patch (15 px at level 0) may still reach the person, and a
-    margin that keeps it clear at every pyramid level lost the case the switch is for (docs/dynamic.md)."""
+    margin that keeps it clear at every pyramid level lost the case the switch is for (docs/dynamic.md).
+    With ``max_fill`` < 1 only in boxes whose person layer fills less than that share of them (``layer_fill``)
+    and in no other box: a box mostly of what lies behind its person (a walker cut diagonally by a rolled
+    camera's box, a person mostly hidden), not an upright person in full view."""
     free = np.zeros(len(uv_raw), bool)
     off = off_body_region(boxes, depth, layers)
     if off is None or not len(uv_raw):
         return free
+    if max_fill < 1.0:
+        layers = {} if layers is None else layers
+        sparse = [layer_fill(b, depth, layers) < max_fill for b in boxes]
+        if not any(sparse):
+            return free
+        in_sparse, in_dense = np.zeros(depth.shape, bool), np.zeros(depth.shape, bool)
+        for (x0, y0, x1, y1), is_sparse in zip(boxes, sparse):
+            (in_sparse if is_sparse else in_dense)[y0:y1, x0:x1] = True
+        off = off & in_sparse & ~in_dense
     near_person = prior_region & ~off
     to_person = cv2.distanceTransform((~near_person).view(np.uint8), cv2.DIST_L2, 5)
     return keypoints_in_mask(off, uv_raw) & (keypoints_in_mask(to_person, uv_raw) > margin_px)

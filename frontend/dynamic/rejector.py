@@ -219,7 +219,8 @@ class DynamicRejector:
             feature_prior = keypoints_in_mask(prior_mask, frame.uv_raw)
             if self.cfg.box_prior_on_body:
                 feature_prior[features_off_body(prior_mask > 0, self._person_boxes(ctx, 0), ctx.depth,
-                                                ctx.person_layers, frame.uv_raw, self.cfg.box_prior_dilate_px)] = 0.0
+                                                ctx.person_layers, frame.uv_raw, self.cfg.box_prior_dilate_px,
+                                                self.cfg.box_prior_on_body_max_fill)] = 0.0
             fused = np.maximum(fused, feature_prior)
         self.stats.frames += 1
         self.stats.add("fused", int(np.sum(fused >= 0.5)))

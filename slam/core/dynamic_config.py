@@ -231,14 +231,21 @@ class DynamicConfig(ConfigSection):
     landmark-admission threshold (backend.landmark_max_dynamic_prob), so nothing inside a person box
     enters the map (as ORB-SLAM3 with depth zeroed in person boxes). 0 = off."""
     box_prior_dilate_px: int = Field(10, ge=0)
-    box_prior_on_body: bool = False
-    """The prior only where a feature could be on the person: a feature in a person box more than a body's
-    reach (0.7 m) in depth from the person layer of every box holding it, and more than
-    ``box_prior_dilate_px`` from the rest of the boxes, keeps the methods' own probability
-    (``keyframe_masks.features_off_body``), so the desk or wall a box frames may be mapped. Off: measured
-    2026-11-29 (docs/dynamic.md, "The box prior off the body"), it fixes composited two_walk at 150 frames
-    (41.8 -> 19.5 mm, its 202 mm frame gone) and leaves Bonn crowd-480 and fr1/rpy-400 as good or better, but
-    takes the generated three_close over the 1.5x bar (median of seeds 0-4 1.49 -> 1.80x)."""
+    box_prior_on_body: bool = True
+    """The prior only where a feature could be on the person, in the boxes ``box_prior_on_body_max_fill``
+    admits: a feature in such a person box more than a body's reach (0.7 m) in depth from the person layer of
+    every box holding it, and more than ``box_prior_dilate_px`` from the rest of the boxes, keeps the methods'
+    own probability (``keyframe_masks.features_off_body``), so the desk or wall a box frames may be mapped.
+    False: the prior on every feature in every box (the preset ``dynamic_box_prior``, the box-mask baseline)."""
+    box_prior_on_body_max_fill: float = Field(0.33, gt=0.0, le=1.0)
+    """Boxes where ``box_prior_on_body`` applies: those whose person layer (within 0.2 m of its depth) fills
+    less than this share of the box, and no pixel of any other box. A third: an upright person in full view
+    fills half their box or more (generated three_close: median 0.65, quartile 0.56), while a walker crossing a
+    rolled camera's view diagonally, or a person mostly hidden, leaves most of it to what lies behind.
+    Measured 2026-12-01 (docs/dynamic.md, "The box prior off the body, in sparse boxes only"): in every box
+    (1.0) it fixed composited two_walk at 150 frames but took generated three_close over its 1.5x bar; with a
+    third, three_close and the other generated scenes are unchanged, two_walk at 150 frames goes 2.28 / 1.28 /
+    2.16x -> 1.11 / 0.86 / 2.46x (seeds 0-2), Bonn crowd-480 0.0104 -> 0.0102 m (median of seeds 0-2)."""
     motion_region_votes: int = Field(3, ge=0)
     """Detector-free evidence (frontend/dynamic/region_motion.py): a connected region of cpr's mask in
     which at least this many of flow_epipolar's tracks move against the epipolar geometry, and at least
