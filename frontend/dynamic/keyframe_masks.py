@@ -204,14 +204,16 @@ def features_off_body(prior_region: np.ndarray, boxes: Sequence[Box], depth: np.
     and in no other box: a box mostly of what lies behind its person (a walker cut diagonally by a rolled
     camera's box, a person mostly hidden), not an upright person in full view."""
     free = np.zeros(len(uv_raw), bool)
-    off = off_body_region(boxes, depth, layers)
-    if off is None or not len(uv_raw):
+    if not len(uv_raw) or not boxes:
         return free
-    if max_fill < 1.0:
-        layers = {} if layers is None else layers
-        sparse = [layer_fill(b, depth, layers) < max_fill for b in boxes]
-        if not any(sparse):
-            return free
+    layers = {} if layers is None else layers
+    sparse = [layer_fill(b, depth, layers) < max_fill for b in boxes] if max_fill < 1.0 else [True] * len(boxes)
+    if not any(sparse):          # most frames: upright people in full view; the region is not needed
+        return free
+    off = off_body_region(boxes, depth, layers)
+    if off is None:
+        return free
+    if not all(sparse):
         in_sparse, in_dense = np.zeros(depth.shape, bool), np.zeros(depth.shape, bool)
         for (x0, y0, x1, y1), is_sparse in zip(boxes, sparse):
             (in_sparse if is_sparse else in_dense)[y0:y1, x0:x1] = True
