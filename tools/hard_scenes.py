@@ -7,6 +7,7 @@ pixel (p >= 0.5) against the exact masks.
     python tools/hard_scenes.py close_pass --frames 150 --preset dynamic_all --set tracking.x=...
     python tools/hard_scenes.py --composite ../shared/data/rgbd_dataset_freiburg1_rpy_first400 [scenes]
     python tools/hard_scenes.py three_close --repeats 3       # seeds 0, 1, 2: each one's ATE ratio, the median
+    python tools/hard_scenes.py --sensor-min-range 0.5        # no depth nearer than 0.5 m, as TUM's and Bonn's cameras
 
 ``--composite FOLDER`` puts the scripted people into a real sequence instead (slam/datasets/composite.py:
 its ground-truth camera path, its own frames behind the people; also ``two_walk`` and ``walk_stand``), all
@@ -52,6 +53,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="a real TUM-layout sequence with groundtruth.txt to composite the people into")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value after the preset (repeatable)")
+    parser.add_argument("--sensor-min-range", type=float, default=0.0, metavar="M",
+                        help="no depth nearer than M metres, as a real RGB-D camera (0.5 for TUM's and Bonn's; "
+                             "default 0: the exact depth)")
     return parser
 
 
@@ -63,7 +67,8 @@ def _sources(args, overrides: dict):
         intrinsics = (config.camera.fx, config.camera.fy, config.camera.cx, config.camera.cy)
 
         def make(name: str):
-            return CompositeScene(name, args.composite, intrinsics, n_frames=args.frames, seed=args.seed)
+            return _sensing(CompositeScene(name, args.composite, intrinsics, n_frames=args.frames, seed=args.seed),
+                            args.sensor_min_range)
 
         def config_of(seq, seed: int):
             return seeded(config.model_copy(deep=True), seed)
@@ -71,11 +76,17 @@ def _sources(args, overrides: dict):
     frames = args.frames or 150
 
     def make_hard(name: str):
-        return HardScene(name, n_frames=frames, seed=args.seed)
+        return _sensing(HardScene(name, n_frames=frames, seed=args.seed), args.sensor_min_range)
 
     def config_of_synthetic(seq, seed: int):
         return seeded(synthetic_config(seq, preset=args.preset, **overrides), seed)
-    return make_hard, config_of_synthetic, SyntheticSequence(n_frames=frames, seed=args.seed)
+    return make_hard, config_of_synthetic, _sensing(SyntheticSequence(n_frames=frames, seed=args.seed),
+                                                    args.sensor_min_range)
+
+
+def _sensing(sequence, min_range_m: float):
+    sequence.sensor_min_range_m = min_range_m
+    return sequence
 
 
 def _row(name: str, scene, results: list, cleans: list) -> str:

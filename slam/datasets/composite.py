@@ -32,6 +32,7 @@ from .base import RGBDFrame
 from .synthetic import SyntheticSequence
 from .synthetic_bodies import mover_bodies
 from .synthetic_movers import Mover
+from .synthetic_primitives import sensed_depth
 from .synthetic_scenes import BLUR_SAMPLES, EXPOSURE_S, HARD_SCENE_KINDS, HARD_SCENES, HardScene, _walker
 from .tum import DatasetError, TumDataset
 
@@ -127,8 +128,8 @@ class CompositeScene(HardScene):
             for offset in np.linspace(-EXPOSURE_S / 2, EXPOSURE_S / 2, BLUR_SAMPLES):
                 acc += self._over(real.rgb, *self._people(self.pose(time + offset), time + offset, real.depth))
             rgb = np.round(acc / BLUR_SAMPLES).astype(np.uint8)
-        return RGBDFrame(index=index, timestamp=time, rgb=rgb, depth=depth.copy() if cache else depth,
-                         dynamic_mask=self._mask(face, time))
+        sensed = sensed_depth(depth.copy() if cache else depth, self.sensor_min_range_m)
+        return RGBDFrame(index=index, timestamp=time, rgb=rgb, depth=sensed, dynamic_mask=self._mask(face, time))
 
     def _over(self, real_rgb: np.ndarray, frames, depth: np.ndarray, face: np.ndarray) -> np.ndarray:
         person = face != self._no_hit

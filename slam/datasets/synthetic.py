@@ -25,7 +25,7 @@ import numpy as np
 from .base import DatasetDefaults, RGBDFrame, read_ahead
 from .synthetic_movers import MOVER_PRESETS, Mover, WalkLoop, mover_kinds  # noqa: F401  (some re-exported)
 from .synthetic_planning import MoverPlanner
-from .synthetic_primitives import _EDGES, _NEAR, _SIGNS, TEXEL, Box, add_textures, static_pose
+from .synthetic_primitives import _EDGES, _NEAR, _SIGNS, TEXEL, Box, add_textures, sensed_depth, static_pose
 from .synthetic_primitives import make_texture  # noqa: F401  (re-exported)
 
 _LIGHT = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
@@ -165,6 +165,7 @@ class SyntheticSequence(DatasetDefaults):
             primitive_mover[mover.parts] = i
         self.face_mover = primitive_mover[self.face_primitive]
         """Global face index -> index into ``movers`` (-1: static scene or no hit)."""
+        self.sensor_min_range_m = 0.0     # frames' depth: 0 nearer than this (synthetic_primitives.SENSOR_MIN_RANGE_M)
         self._casts: OrderedDict = OrderedDict()
         self._kept: Optional[dict[int, RGBDFrame]] = None   # keep_frames
         # Frame index -> (mover, visible pixels, x0, y0, x1, y1) of every mover in view, noted by every ray
@@ -240,8 +241,9 @@ class SyntheticSequence(DatasetDefaults):
         ``dynamic_mask``/``mover_ids``/``mover_boxes`` queries that may follow."""
         frames, depth, face = self._cast_frame(index, cache)
         time = float(self.timestamps[index])
-        return RGBDFrame(index=index, timestamp=time, rgb=self._texture(frames, depth, face),
-                         depth=depth.copy() if cache else depth, dynamic_mask=self._mask(face, time))
+        sensed = sensed_depth(depth.copy() if cache else depth, self.sensor_min_range_m)
+        return RGBDFrame(index=index, timestamp=time, rgb=self._texture(frames, depth, face), depth=sensed,
+                         dynamic_mask=self._mask(face, time))
 
     def moving(self, time: float) -> np.ndarray:
         """Per mover: whether it moves at ``time`` (a dragged chair is still until it is grabbed)."""

@@ -93,3 +93,16 @@ def add_textures(box: Box, rng: np.random.Generator) -> Box:
 _SIGNS = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
 _EDGES = np.array([(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(_SIGNS[i] != _SIGNS[j]) == 1])
 _NEAR = 0.05
+
+SENSOR_MIN_RANGE_M = 0.5
+"""Nearer than this a structured-light RGB-D camera measures nothing: the Kinect v1 of TUM and the Xtion of
+Bonn (specified from ~0.5 m; the nearest valid depth in fr1/rpy's first 400 frames is 0.58 m, in Bonn crowd's
+first 480 0.75 m). ``SyntheticSequence.sensor_min_range_m`` set to it shows a person who comes nearer in
+colour, without depth; its default (0) keeps the exact depth (docs/dynamic.md, "Nearer than the sensor
+ranges")."""
+
+
+def sensed_depth(depth: np.ndarray, min_range_m: float) -> np.ndarray:
+    """``depth`` as a sensor with that minimum range reports it: 0 (no measurement) where the nearest surface
+    is nearer; a new array when the range is set, ``depth`` itself otherwise."""
+    return np.where(depth < min_range_m, np.float32(0), depth) if min_range_m > 0 else depth

@@ -40,6 +40,8 @@ MISS_COVERAGE = 0.6
 (blurred, head and feet out of view: what YOLOX-Nano missed on Bonn)."""
 PERSON_WIDTH_M = 0.53
 """Shoulder-to-shoulder width of the generated people with their arms (``synthetic_bodies._person``)."""
+BORDER_STOP_M = 0.8
+"""border: the walker stops this far from the camera (their front ~0.55 m away, inside the sensor's range)."""
 MISS_VISIBLE = 0.5
 """border: a person cut by the left or right image border is missed while less than this share of their
 width is in view."""
@@ -91,9 +93,11 @@ class HardScene(SyntheticSequence):
                             face=self._facing_camera(start - 1.0, spot))]
         # border: a person walking towards the camera, placed on the line of sight of the image's left
         # edge at mid-sequence (half of them out of view then); the camera's pan carries them in or out.
+        # They stop BORDER_STOP_M short of where the camera is then: a walker on a line of sight would
+        # otherwise walk into the lens (the composites' camera barely moves; 2 cm on fr1/rpy).
         ray = self._edge_ray(mid)
         spot = self.pose(mid)[:2, 3] + 1.8 * ray
-        return [_walker(bodies[0], spot, -ray, 1.0, mid)]
+        return [_walker(bodies[0], spot, -ray, 1.0, mid, reach=(3.0, 1.8 - BORDER_STOP_M))]
 
     def _ahead(self, time: float, distance: float, lateral: float = 0.0) -> np.ndarray:
         """Floor point ``distance`` m in front of the camera (horizontally) and ``lateral`` m to its
@@ -148,7 +152,7 @@ class HardScene(SyntheticSequence):
                 for x0, _, x1, _, _ in self.mover_boxes(i):
                     if x0 > 0 and x1 < self.width:
                         continue
-                    depth = float(np.median(self.frame(i).depth[ids >= 0]))
+                    depth = float(np.median(self._cast_frame(i)[1][ids >= 0]))   # the true distance, sensed or not
                     if x1 - x0 < MISS_VISIBLE * fx * PERSON_WIDTH_M / depth:
                         misses.append(i)
             return frozenset(misses)
@@ -170,10 +174,11 @@ class HardScene(SyntheticSequence):
 
 def _walker(body, at: np.ndarray, direction: np.ndarray, speed: float, t_at: float,
             stand_until: Optional[float] = None, face: Optional[float] = None,
-            reach: float = 3.0) -> Mover:
+            reach: tuple[float, float] = (3.0, 3.0)) -> Mover:
     """A person on a straight floor path: at ``at`` at time ``t_at``, walking along ``direction`` at
-    ``speed`` m/s, within ``reach`` m of ``at`` (standing at the path's ends). With ``stand_until`` the
-    person stands at ``at`` (facing ``face``, legs together) until then and walks off afterwards."""
+    ``speed`` m/s, from ``reach[0]`` m before ``at`` to ``reach[1]`` m past it (standing at the path's
+    ends). With ``stand_until`` the person stands at ``at`` (facing ``face``, legs together) until then and
+    walks off afterwards."""
     boxes, locals_ = body
     direction = np.asarray(direction, float) / np.linalg.norm(direction)
     heading = float(np.arctan2(direction[1], direction[0]))
@@ -184,7 +189,7 @@ def _walker(body, at: np.ndarray, direction: np.ndarray, speed: float, t_at: flo
         t = ts - start
         if stand_until is not None:
             t = np.maximum(t, 0.0)
-        return np.clip(speed * t, -reach, reach)
+        return np.clip(speed * t, -reach[0], reach[1])
 
     def track(ts: np.ndarray):
         d = walked(ts)
