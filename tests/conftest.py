@@ -187,7 +187,7 @@ class AccuracyRuns:
 
     def get(self, *names: str, twins: bool = False) -> dict:
         """Results of the named cases, running those not run yet; ``twins``: also the second process
-        of the determinism cases among them."""
+        of the suite's determinism cases among them (``SUITE_DETERMINISM_CASES``)."""
         for name in names:
             case = self.tool.CASES[name]
             if case.sequence:
@@ -195,10 +195,10 @@ class AccuracyRuns:
             if "static" not in case.args and case.sequence:
                 model_file("yolox")   # the default runs the real detector, no cache
         todo = [n for n in names if n not in self.results]
-        late_twins = [n for n in names if twins and n in self.results and n in self.tool.DETERMINISM_CASES
-                      and n not in self.identical]
+        suite_twins = self.tool.SUITE_DETERMINISM_CASES if twins else ()
+        late_twins = [n for n in names if n in self.results and n in suite_twins and n not in self.identical]
         if todo:
-            results, identical = self.tool.run_cases(todo, self.root, jobs=2, determinism=twins)
+            results, identical = self.tool.run_cases(todo, self.root, jobs=2, twins=suite_twins)
             self.results.update(results)
             self.identical.update(identical)
         for name in late_twins:   # run first without its twin: the second process now

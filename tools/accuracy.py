@@ -31,7 +31,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -45,6 +45,7 @@ DYNAMIC_GAIN_MIN = 20.0       # Bonn: ATE with dynamic handling off / on (measur
 STATIC_COST_MAX = 1.10        # fr1/rpy (no people): ATE with dynamic_all / off
 LOOP_GAIN_SLACK_M = 5e-4      # loops on may be at most 0.5 mm worse than off (loop factors are soft)
 BLACKOUT = (185, 30)          # frames 185-214 blanked: 215 must be tracked again (relocalized)
+BLACKOUT_FRAMES = 260         # and 45 frames after it; the 140 more of the full 400 test nothing new
 
 
 @dataclass(frozen=True)
@@ -58,15 +59,21 @@ class Case:
     # Frames that may be LOST honestly: where people leave the background too thin to fix the pose within
     # tracking.max_pose_sigma_m. Twice the worst of seeds 0-2 today; 0 elsewhere: every frame tracked.
     max_lost: int = 0
+    # False: run by this tool only, not by the test suite, whose 15 minutes on 2 cores do not reach that far
+    # (each real case is ~80 s of CPU); the suite's own tests cover the same behaviour on generated scenes.
+    in_suite: bool = True
 
 
 # Baselines: python tools/accuracy.py, 2026-11-26, with the final (robust) trajectory smoother (backend.smoothing_sigma_acc).
 CASES = {c.name: c for c in [
     Case("rpy", RPY, ("run", "{seq}"), "fr1/rpy-400, default (dynamic handling on)", 0.0221, min_loops=3),
     Case("rpy_static", RPY, ("run", "{seq}", "-c", "static"), "fr1/rpy-400, -c static", 0.0235, min_loops=3),
-    Case("rpy_loops_off", RPY, ("run", "{seq}", "--set", "loop.enabled=false"), "fr1/rpy-400, loops off"),
-    Case("rpy_blackout", RPY, ("run", "{seq}", "--blackout", f"{BLACKOUT[0]}:{BLACKOUT[1]}"),
-         "fr1/rpy-400, frames 185-214 blank", 0.0217),
+    # Loops on against off: tests/test_loop_closing.py holds the gain on a room walked twice with drift.
+    Case("rpy_loops_off", RPY, ("run", "{seq}", "--set", "loop.enabled=false"), "fr1/rpy-400, loops off",
+         in_suite=False),
+    # 0.0217 over all 400 frames; 0.0226 over the first 260 (2026-12-01)
+    Case("rpy_blackout", RPY, ("run", "{seq}", "--blackout", f"{BLACKOUT[0]}:{BLACKOUT[1]}", "--max-frames",
+                               str(BLACKOUT_FRAMES)), f"fr1/rpy, first {BLACKOUT_FRAMES}, frames 185-214 blank", 0.0226),
     # Bonn's LOST frames over seeds 0-2: 1-6 (319, 446-450, where people fill most of the view).
     Case("bonn", BONN, ("run", "{seq}"), "Bonn crowd-480, default (dynamic handling on)", 0.0104, min_loops=3,
          max_lost=12),
@@ -82,6 +89,10 @@ CASES = {c.name: c for c in [
          "-c static"),
 ]}
 DETERMINISM_CASES = ("bonn", "demo_people")   # run twice, in separate processes
+# The suite's: the generated room with people (dynamic_all, a loop closed, the worker process); Bonn's second
+# process is another ~100 s of CPU, and tests/test_integration_real.py runs fr1/xyz twice with the real detector.
+SUITE_DETERMINISM_CASES = ("demo_people",)
+SUITE_CASES = tuple(name for name, case in CASES.items() if case.in_suite)
 
 
 @dataclass
@@ -130,13 +141,12 @@ def _check_against_groundtruth(result: CaseResult, gt_file: Path) -> None:
     result.loop_checks = check_loops(result.summary.get("loops", []), *gt, body_rotation=body)
 
 
-def run_cases(names: list[str], root: Path, jobs: int = 2, determinism: bool = True
+def run_cases(names: list[str], root: Path, jobs: int = 2, twins: Sequence[str] = DETERMINISM_CASES
               ) -> tuple[dict[str, CaseResult], dict[str, bool]]:
-    """Run the cases (``jobs`` at a time) and, with ``determinism``, a second process of each
-    determinism case; returns the results and, per determinism case, whether both trajectories are
-    byte-identical."""
+    """Run the cases (``jobs`` at a time) and a second process of each of ``twins`` among them; returns
+    the results and, per twin, whether both trajectories are byte-identical."""
     jobs_list = [(n, root / n) for n in names]
-    twins = [n for n in DETERMINISM_CASES if determinism and n in names]
+    twins = [n for n in twins if n in names]
     jobs_list += [(n, root / f"{n}_again") for n in twins]
     # The longest first, so the two job slots finish together.
     jobs_list.sort(key=lambda job: not job[0].startswith("bonn"))
@@ -261,7 +271,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         root = args.output or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
-        results, identical = run_cases(args.cases, root, args.jobs, not args.no_determinism)
+        results, identical = run_cases(args.cases, root, args.jobs, () if args.no_determinism else DETERMINISM_CASES)
         checks = gates(results)
         print(format_tables(results, checks, identical))
     print(f"\n{len(args.cases)} cases in {time.time() - start:.0f} s, {args.jobs} at a time", file=sys.stderr)

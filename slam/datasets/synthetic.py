@@ -25,7 +25,7 @@ import numpy as np
 from .base import DatasetDefaults, RGBDFrame, read_ahead
 from .synthetic_movers import MOVER_PRESETS, Mover, WalkLoop, mover_kinds  # noqa: F401  (some re-exported)
 from .synthetic_planning import MoverPlanner
-from .synthetic_primitives import _EDGES, _NEAR, _SIGNS, TEXEL, Box, add_textures, sensed_depth, static_pose
+from .synthetic_primitives import _EDGES, _FACE_AXES, _NEAR, _SIGNS, TEXEL, Box, add_textures, sensed_depth, static_pose
 from .synthetic_primitives import make_texture  # noqa: F401  (re-exported)
 
 _LIGHT = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
@@ -119,7 +119,8 @@ def _box_hits(d: list[np.ndarray], ol: np.ndarray, half: np.ndarray, inside: boo
     positive = (on0 & (d[0] > 0)) | (on1 & (d[1] > 0)) | (on2 & (d[2] > 0))
     if not inside:
         positive = ~positive
-    face = on1.astype(np.int64) * 2 + on2 * 4 + positive
+    # int16 throughout: int64 arithmetic over every pixel of the room box was a quarter of the ray cast
+    face = (on1.astype(np.int16) << 1) | (on2.astype(np.int16) << 2) | positive
     return t, face
 
 
@@ -355,7 +356,7 @@ class SyntheticSequence(DatasetDefaults):
             t, f = _box_hits(d, ol, box.half, box.inside)
             closer = t < best_t[win]
             np.copyto(best_t[win], t, where=closer)
-            np.copyto(best_f[win], f + 6 * p, where=closer)
+            np.copyto(best_f[win], f + np.int16(6 * p), where=closer)
         best_t[~np.isfinite(best_t)] = 0.0
         return best_t, best_f
 
@@ -382,16 +383,17 @@ class SyntheticSequence(DatasetDefaults):
                  face: np.ndarray) -> np.ndarray:
         """Nearest-texel colour of every hit: face-local texture coordinates are affine in (t*x, t*y, t),
         so eight small per-face coefficient tables and a handful of gathers do all pixels at once."""
+        m = np.stack([box_m for box_m, _ in frames])                      # (P, 3, 3)
+        start = np.stack([ol for _, ol in frames]) + np.stack([box.half for box in self.primitives])  # (P, 3)
+        # rows 0-3: u = (start[a] + m[a] . ray * t) / TEXEL along axis a = _FACE_AXES[f, 0]; rows 4-7: v
+        table = np.concatenate([start[:, _FACE_AXES, None], m[:, _FACE_AXES]], axis=-1) / TEXEL
         coef = np.zeros((8, len(self._tex_w)), np.float32)
-        for p, (box, (m, ol)) in enumerate(zip(self.primitives, frames)):
-            for f in range(6):
-                for row, a in ((0, (f // 2 + 1) % 3), (4, (f // 2 + 2) % 3)):
-                    coef[row:row + 4, 6 * p + f] = np.r_[ol[a] + box.half[a], m[a]] / TEXEL
+        coef[:, :6 * len(frames)] = table.reshape(6 * len(frames), 8).T
         fl, t = face.ravel(), depth.ravel()
         x, y = self._rays[0].ravel(), self._rays[1].ravel()
         uv = []
         for row in (0, 4):
-            c = coef[row:row + 4, fl]
+            c = [np.take(coef[row + k], fl) for k in range(4)]   # 1-D gathers: ~3x faster than coef[:, fl]
             # truncation maps the rounding-level negatives at face edges to 0; textures carry one
             # padding texel on the far edges for the other side, so no per-pixel clip is needed
             uv.append((c[0] + t * (c[1] * x + c[2] * y + c[3])).astype(np.int32))

@@ -93,6 +93,8 @@ def add_textures(box: Box, rng: np.random.Generator) -> Box:
 _SIGNS = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
 _EDGES = np.array([(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(_SIGNS[i] != _SIGNS[j]) == 1])
 _NEAR = 0.05
+_FACE_AXES = np.array([[(f // 2 + 1) % 3, (f // 2 + 2) % 3] for f in range(6)])
+"""Per box face (f // 2 is its normal's axis): the box axes along its texture's u and v."""
 
 SENSOR_MIN_RANGE_M = 0.5
 """Nearer than this a structured-light RGB-D camera measures nothing: the Kinect v1 of TUM and the Xtion of
