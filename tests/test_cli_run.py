@@ -148,8 +148,9 @@ def test_dynamic_run_writes_per_frame_flag_counts(tmp_path):
     assert main(["demo", "--no-compare", "--movers", "none", "--frames", "12", "-o", str(out), "-q", "--set", "dynamic.methods=[cpr]",
                  "--set", "dynamic.fusion=single"]) == 0
     lines = (out / "dynamic.csv").read_text().strip().splitlines()
-    # The demo's detector (the scene's boxes) serves the person-box prior: people standing still are counted.
-    assert lines[0] == "timestamp,cpr,fused,standing_people"
+    # The demo's detector (the scene's boxes) serves the person-box prior: people standing still are counted;
+    # the near-occluder rule (on in the default) counts the features only it flagged.
+    assert lines[0] == "timestamp,cpr,near_occluders,fused,standing_people"
     assert len(lines) == 13 and all(line.endswith(",0") for line in lines[1:])   # no people in this room
     summary = json.loads((out / "summary.json").read_text())
     assert summary["dynamic_methods"] == ["cpr"] and "cpr" in summary["dynamic_flagged"]

@@ -119,7 +119,8 @@ def test_cli_run_without_a_model_uses_cpr_and_warns_once(no_model, tmp_path, rec
     assert len(missing) == 1 and missing[0].endswith(f"Get the model with: {COMMAND}")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["dynamic_methods"] == ["cpr"]
-    assert set(summary["dynamic_flagged"]) <= {"cpr", "fused"}
+    # no detector-based method ran; the near-occluder rule needs only depth and poses
+    assert set(summary["dynamic_flagged"]) <= {"cpr", "near_occluders", "fused"}
 
 
 def test_cli_run_of_detector_methods_without_a_model_is_exit_2(no_model, tmp_path, capsys, monkeypatch):

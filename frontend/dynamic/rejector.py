@@ -24,6 +24,7 @@ from frontend.dynamic.free_space import FreeSpaceCheck
 from frontend.dynamic.fusion import fuse
 from frontend.dynamic.keyframe_masks import (KeyframeMaskLedger, MaskParts, compose_mask, features_off_body,
                                              still_region, vacated_region)
+from frontend.dynamic.near_occluder import NearOccluder
 from frontend.dynamic.region_motion import RegionCarry, RegionMotion, box_centre, confirmed_regions
 from frontend.dynamic.surface_drift import FrameTracks, PersonView
 from slam.core.camera import PinholeCamera
@@ -80,6 +81,7 @@ class DynamicRejector:
         self._region_motion = RegionMotion(cfg.still_window_s, cfg.still_max_move_m, camera)
         # A confirmed motion region is carried through thin-evidence frames as long as a lost box is held.
         self._region_carry = RegionCarry(cfg.detector.hold_frames)
+        self._near_occluder = NearOccluder(camera) if cfg.near_occluders else None
         self._motion_methods = [k for k, m in enumerate(methods) if m.measures_motion]
         self._still_region: Optional[np.ndarray] = None
         self._motion_region: Optional[np.ndarray] = None
@@ -214,6 +216,16 @@ class DynamicRejector:
             raised = np.maximum(fused, _MOTION_REGION_PROB * keypoints_in_mask(self._motion_region, frame.uv_raw))
             found_by_motion = int(np.sum((raised >= 0.5) & (fused < 0.5)))
             fused = raised
+        if self._near_occluder is not None:
+            # nearer than the sensor measures: a region to the keyframe masks like a confirmed motion region
+            near = self._near_occluder.update(ctx.depth, ctx.gray, ctx.predicted_T_cw)
+            found_near = 0
+            if near is not None:
+                raised = np.maximum(fused, _MOTION_REGION_PROB * keypoints_in_mask(near, frame.uv_raw))
+                found_near = int(np.sum((raised >= 0.5) & (fused < 0.5)))
+                fused = raised
+                self._motion_region = near if self._motion_region is None else np.maximum(self._motion_region, near)
+            self.stats.add("near_occluders", found_near)     # features only the near-occluder rule flagged
         prior_mask = self._box_prior_mask(ctx)
         if prior_mask is not None:
             feature_prior = keypoints_in_mask(prior_mask, frame.uv_raw)
@@ -324,6 +336,8 @@ class DynamicRejector:
             return
         ctx, outputs = self._last
         tracks = self._region_motion.commit(T_cw)
+        if self._near_occluder is not None:
+            self._near_occluder.end_frame(T_cw)
         grown = []
         if T_cw is not None and self._free_space.enabled:
             if is_keyframe and self._mask_parts is not None:

@@ -254,6 +254,10 @@ class DynamicConfig(ConfigSection):
     motion_region_share: float = Field(0.2, **_UNIT)
     """A fifth: the share of a walking person's tracks the epipolar test flags (per-pixel recall
     0.17-0.33 on the generated scenes), far above its false alarms on static surfaces."""
+    near_occluders: bool = True
+    """Hole regions of the depth image that hide a surface the frame before measured (a person nearer than the
+    sensor's ~0.5 m range; frontend/dynamic/near_occluder.py) are moving (probability 0.9 on their features
+    and pixels, as a confirmed motion region). Exact synthetic depth has no holes: no change there."""
     still_window_s: float = Field(0.5, ge=0)
     """A person whose torso stayed within ``still_max_move_m`` in the world for this long (or whose surface,
     followed by the point tracks on it, did for twice as long) stands still: in their box the keyframe masks
