@@ -80,54 +80,59 @@ class NearOccluder:
     def __init__(self, camera: PinholeCamera):
         self.camera = camera
         self._prev: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]] = None   # depth, grey (quarter), T_cw
-        self._age: Optional[np.ndarray] = None      # per cell: frames since the flag was confirmed (255: none)
+        self._age: Optional[np.ndarray] = None      # per cell: frames since the flag was renewed (255: none)
         self._pending: Optional[tuple[np.ndarray, np.ndarray]] = None    # this frame's quarter depth and grey
         self._measured: Optional[np.ndarray] = None   # per cell: a running share of frames with valid depth
-        h, w = camera.height // _SCALE, camera.width // _SCALE
-        v, u = np.mgrid[0:h, 0:w]
-        self._cell_uv = np.stack([u.ravel() * _SCALE + _SCALE // 2, v.ravel() * _SCALE + _SCALE // 2], 1)
-        self.last_cells: Optional[np.ndarray] = None   # quarter-resolution bool, for diagnostics and tests
-
-    def reset(self) -> None:
-        self._prev = self._age = self._pending = self.last_cells = self._measured = None
 
     def update(self, depth: np.ndarray, gray: np.ndarray, predicted_T_cw: Optional[np.ndarray]
                ) -> Optional[np.ndarray]:
         """HxW bool of this frame's near occluders, or None when there are none."""
         depth_q, gray_q = _quarter(depth), _quarter(gray)
         self._pending = (depth_q, gray_q)
-        self.last_cells = None
+        holes = self._holes(depth_q)
+        if holes is None or self._prev is None or predicted_T_cw is None or depth_q.shape != self._prev[0].shape:
+            self._age = None
+            return None
+        labels, big = holes
+        # only what lands on or beside (2 cells: the gap closing's reach) a big hole is ever read
+        near_big = cv2.dilate(big[labels].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        seen_depth, seen_gray = self._warp_previous(predicted_T_cw, near_big)
+        self._age = self._flag(labels, big, seen_depth, seen_gray, gray_q)
+        cells = self._age != _NO_FLAG
+        if not cells.any():
+            return None
+        full = cv2.resize(cells.astype(np.uint8), (depth.shape[1], depth.shape[0]), interpolation=cv2.INTER_NEAREST)
+        return full.astype(bool)
+
+    def _holes(self, depth_q: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """(component labels, per label: big enough) of this frame's holes, None without a big one; counts
+        the frame in the running share of valid depth."""
         valid = (depth_q > 0).astype(np.float32)
         if self._measured is None or self._measured.shape != valid.shape:
             self._measured = valid
         else:
             self._measured = (1 - _MEASURED_RATE) * self._measured + _MEASURED_RATE * valid
-        if self._prev is None or predicted_T_cw is None or depth_q.shape != self._prev[0].shape:
-            self._age = None
-            return None
         # holes where the sensor usually measures: not the band along the border that the depth camera's
         # narrower view never covers (a turn warps surfaces into it) nor what lies beyond its range
         hole = cv2.morphologyEx(((valid == 0) & (self._measured >= 0.5)).astype(np.uint8), cv2.MORPH_OPEN,
                                 np.ones((3, 3), np.uint8))
         if not hole.any():
-            self._age = None
             return None
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(hole, connectivity=8)
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(hole, connectivity=8)
         big = stats[:, cv2.CC_STAT_AREA] >= _MIN_AREA_SHARE * hole.size
         big[0] = False                                       # label 0: the valid depth around the holes
-        if not big.any():
-            self._age = None
-            return None
-        # only what lands on or beside (2 cells: the gap closing's reach) a big hole is ever read
-        near_big = cv2.dilate(big[labels].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        seen_depth, seen_gray = self._warp_previous(predicted_T_cw, near_big)
+        return (labels, big) if big.any() else None
+
+    def _flag(self, labels: np.ndarray, big: np.ndarray, seen_depth: np.ndarray, seen_gray: np.ndarray,
+              gray_q: np.ndarray) -> np.ndarray:
+        """Per cell, the age of its flag (``_NO_FLAG``: none): new arrivals, and last frame's flags followed."""
+        n = len(big)
         seen = (seen_depth > 0) & (seen_depth < _MAX_SEEN_M) & (labels > 0)
-        before = np.full(hole.shape, _NO_FLAG, np.uint8) if self._age is None else self._age
         # last frame's flags on this frame's holes, cell for cell: the person's hole overlaps itself from
         # frame to frame, and its new cells were a surface a frame ago (seen). Not grown: a flag grown by a
         # cell a frame creeps over a static hole that touches the person's (fr1's black monitor)
-        carried_age = np.where(before < _MAX_CARRY_FRAMES, before, _NO_FLAG)
-        carried = (carried_age != _NO_FLAG) & (labels > 0)
+        before = self._age_before(labels.shape)
+        carried = (before != _NO_FLAG) & (labels > 0)
         flat = labels.ravel()
         area = np.bincount(flat, minlength=n)
         n_seen = np.bincount(flat, weights=seen.ravel(), minlength=n)
@@ -135,8 +140,8 @@ class NearOccluder:
         # New: most of the component was a surface a frame ago (all of it is the arrival), or a flagged
         # component uncovered a person's worth of such cells again (still moving: the flag is renewed).
         whole = big & (n_seen >= _MIN_SEEN_SHARE * area)
-        renewed = big & (n_carried > 0) & (n_seen >= _MIN_AREA_SHARE * hole.size)
-        age = np.full(hole.shape, _NO_FLAG, np.uint8)
+        renewed = big & (n_carried > 0) & (n_seen >= _MIN_AREA_SHARE * labels.size)
+        age = np.full(labels.shape, _NO_FLAG, np.uint8)
         for label in np.flatnonzero(big & (whole | (n_carried > 0))):   # a handful of components at most
             comp = labels == label
             fresh = comp & seen
@@ -149,20 +154,20 @@ class NearOccluder:
             part = comp & carried
             if not part.any():
                 continue
-            older = np.minimum(carried_age[part].astype(np.int16) + 1, _NO_FLAG).astype(np.uint8)
+            older = before[part] + np.uint8(1)                # below _MAX_CARRY_FRAMES: no overflow
             age[part] = older
             if n_carried[label] >= _MIN_FOLLOWED_SHARE * area[label]:
                 age[comp & ~part] = older.min()       # mostly the followed hole: it grew (a person nearing)
             elif arrived:
                 age[fresh & ~part] = older.min()      # grown over what was a surface a frame ago
         age[age > _MAX_CARRY_FRAMES] = _NO_FLAG
-        self._age = age
-        cells = age != _NO_FLAG
-        if not cells.any():
-            return None
-        self.last_cells = cells
-        full = cv2.resize(cells.astype(np.uint8), (depth.shape[1], depth.shape[0]), interpolation=cv2.INTER_NEAREST)
-        return full.astype(bool)
+        return age
+
+    def _age_before(self, shape: tuple[int, int]) -> np.ndarray:
+        """Last frame's flag ages that may still be carried (``_NO_FLAG`` elsewhere)."""
+        if self._age is None or self._age.shape != shape:
+            return np.full(shape, _NO_FLAG, np.uint8)
+        return np.where(self._age < _MAX_CARRY_FRAMES, self._age, _NO_FLAG)
 
     @staticmethod
     def _newly_near(cells: np.ndarray, seen_depth: np.ndarray, seen_gray: np.ndarray, gray: np.ndarray) -> bool:
@@ -181,7 +186,9 @@ class NearOccluder:
         prev_depth, prev_gray, prev_T_cw = self._prev
         z = prev_depth.ravel()
         valid = z > 0
-        uv, z = self._cell_uv[valid], z[valid].astype(np.float64)
+        rows, cols = np.divmod(np.flatnonzero(valid), prev_depth.shape[1])
+        uv = np.stack([cols * _SCALE + _SCALE // 2, rows * _SCALE + _SCALE // 2], 1)   # the cells' pixels
+        z = z[valid].astype(np.float64)
         cam = self.camera
         xyz = np.stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], 1)
         rel = T_cw @ np.linalg.inv(prev_T_cw)

@@ -36,6 +36,15 @@ from slam.core.timing import ModuleTimer
 _MOTION_REGION_PROB = 0.9
 
 
+def _raised_in(fused: np.ndarray, region: Optional[np.ndarray], uv: np.ndarray) -> tuple[np.ndarray, int]:
+    """``fused`` raised to ``_MOTION_REGION_PROB`` on the features inside ``region`` (HxW, None: none), and
+    how many of them only that raise puts at 0.5 or above."""
+    if region is None:
+        return fused, 0
+    raised = np.maximum(fused, _MOTION_REGION_PROB * keypoints_in_mask(region, uv))
+    return raised, int(np.sum((raised >= 0.5) & (fused < 0.5)))
+
+
 @dataclass
 class _BegunFrame:
     """A frame whose image-only work (detection, the methods' prepare) runs on the threads."""
@@ -211,19 +220,12 @@ class DynamicRejector:
         and the prior's pixel mask; counts the frame in ``stats``."""
         frame = ctx.frame
         self._motion_region = self._confirmed_motion(outputs, frame, ctx)
-        found_by_motion = 0
-        if self._motion_region is not None:
-            raised = np.maximum(fused, _MOTION_REGION_PROB * keypoints_in_mask(self._motion_region, frame.uv_raw))
-            found_by_motion = int(np.sum((raised >= 0.5) & (fused < 0.5)))
-            fused = raised
+        fused, found_by_motion = _raised_in(fused, self._motion_region, frame.uv_raw)
         if self._near_occluder is not None:
             # nearer than the sensor measures: a region to the keyframe masks like a confirmed motion region
             near = self._near_occluder.update(ctx.depth, ctx.gray, ctx.predicted_T_cw)
-            found_near = 0
+            fused, found_near = _raised_in(fused, near, frame.uv_raw)
             if near is not None:
-                raised = np.maximum(fused, _MOTION_REGION_PROB * keypoints_in_mask(near, frame.uv_raw))
-                found_near = int(np.sum((raised >= 0.5) & (fused < 0.5)))
-                fused = raised
                 self._motion_region = near if self._motion_region is None else np.maximum(self._motion_region, near)
             self.stats.add("near_occluders", found_near)     # features only the near-occluder rule flagged
         prior_mask = self._box_prior_mask(ctx)

@@ -119,7 +119,7 @@ def _box_hits(d: list[np.ndarray], ol: np.ndarray, half: np.ndarray, inside: boo
     positive = (on0 & (d[0] > 0)) | (on1 & (d[1] > 0)) | (on2 & (d[2] > 0))
     if not inside:
         positive = ~positive
-    # int16 throughout: int64 arithmetic over every pixel of the room box was a quarter of the ray cast
+    # int16: the int64 arithmetic over every pixel of the room box was a fifth of the ray cast (line profile)
     face = (on1.astype(np.int16) << 1) | (on2.astype(np.int16) << 2) | positive
     return t, face
 
