@@ -72,3 +72,30 @@ def test_method_line_lists_every_dynamic_method_slowest_first():
     assert line == ("dynamic front end (methods, detector wait, steps), median wall ms per frame: cpr 21.0, "
                     "box_depth 4.2, detector 0.1")
     assert benchmark.method_line({}) == "dynamic front end: none (dynamic handling off)"
+
+
+def test_module_cpu_line_lists_modules_by_cpu_without_the_total():
+    line = benchmark.module_cpu_line({"tracking": 24.1, "dynamic.flow_epipolar": 19.25, "total": 70.0})
+    assert line == ("module CPU, mean ms per frame (the thread that ran it): tracking 24.1, "
+                    "dynamic.flow_epipolar 19.2")
+    assert benchmark.module_cpu_line({}) == "module CPU: not measured"
+
+
+def test_module_timer_counts_a_waiting_block_as_wall_time_but_not_as_cpu():
+    import time
+
+    from slam.core.timing import ModuleTimer
+
+    timer = ModuleTimer()
+    with timer.measure("waits"):
+        time.sleep(0.05)             # a thread waiting for a core, a lock or a result: wall, no CPU
+    with timer.measure("works"):
+        end = time.thread_time() + 0.03
+        while time.thread_time() < end:
+            pass
+    timer.end_frame()
+    summary = timer.summary()
+    assert summary["waits"]["median_ms"] >= 50 and summary["waits"]["cpu_mean_ms"] < 10
+    assert summary["works"]["cpu_mean_ms"] >= 30
+    assert summary["total"]["cpu_mean_ms"] == pytest.approx(summary["waits"]["cpu_mean_ms"]
+                                                            + summary["works"]["cpu_mean_ms"])
