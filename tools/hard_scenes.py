@@ -89,20 +89,34 @@ def _sensing(sequence, min_range_m: float):
     return sequence
 
 
+MIN_MOVING_PX = 1000
+"""Fewer moving pixels than this over all keyframes (a third of a percent of one 640 x 480 image) and the
+masks' precision / recall describe a hand or a few fingers, not a person: the row says so instead. Composited
+``border`` on fr1/rpy is such a scene: its walk happens out of view (477 moving pixels over 400 frames)."""
+
+
+def _mask_pr(fused) -> str:
+    """The fused keyframe masks' precision / recall, or why there is none to report."""
+    if fused is None:
+        return "-"
+    if fused.dynamic < MIN_MOVING_PX:
+        return f"- (only {fused.dynamic} moving px in keyframes)"
+    return f"{fused.precision:.2f} / {fused.recall:.2f}"
+
+
 def _row(name: str, scene, results: list, cleans: list) -> str:
     """The scene's table row: seed 0's measures, and with several seeds each one's ratio, the median and
     the worst frame of any seed."""
     result, clean = results[0], cleans[0]
     cls, fused = result.classification, result.keyframe_masks.get("fused")
-    mask_pr = f"{fused.precision:.2f} / {fused.recall:.2f}" if fused else "-"
+    mask_pr = _mask_pr(fused)
     row = (f"| {name} | {scene.coverage.max():.2f} | {len(scene.detector_misses)} "
            f"| {result.ate_rmse * 1000:.1f} | {result.ate_rmse / clean.ate_rmse:.2f} "
            f"| {result.max_error * 1000:.1f} | {len(result.lost_frames)} "
            f"| {cls.precision['fused']:.2f} / {cls.recall['fused']:.2f} | {mask_pr} |")
     if len(results) > 1:
         ratios = " ".join(f"{r.ate_rmse / c.ate_rmse:.2f}" for r, c in zip(results, cleans))
-        masks = ", ".join(f"{m.precision:.2f} / {m.recall:.2f}" if m else "-"
-                          for m in (r.keyframe_masks.get("fused") for r in results))
+        masks = ", ".join(_mask_pr(r.keyframe_masks.get("fused")) for r in results)
         row += (f" {ratios} ({median_ate_ratio(results, cleans):.2f}) "
                 f"| {max(r.max_error for r in results) * 1000:.1f} | {masks} |")
     return row
