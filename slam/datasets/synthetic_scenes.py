@@ -95,9 +95,15 @@ class HardScene(SyntheticSequence):
         # edge at mid-sequence (half of them out of view then); the camera's pan carries them in or out.
         # They stop BORDER_STOP_M short of where the camera is then: a walker on a line of sight would
         # otherwise walk into the lens (the composites' camera barely moves; 2 cm on fr1/rpy).
-        ray = self._edge_ray(mid)
-        spot = self.pose(mid)[:2, 3] + 1.8 * ray
-        return [_walker(bodies[0], spot, -ray, 1.0, mid, reach=(3.0, 1.8 - BORDER_STOP_M))]
+        at = self._border_time()
+        ray = self._edge_ray(at)
+        spot = self.pose(at)[:2, 3] + 1.8 * ray
+        return [_walker(bodies[0], spot, -ray, 1.0, at, reach=(3.0, 1.8 - BORDER_STOP_M))]
+
+    def _border_time(self) -> float:
+        """border: when the walker is on the left border's line of sight (mid-sequence; the generated
+        camera looks level, its optical axis 2 degrees below the horizon then)."""
+        return self.n_frames / self.fps / 2
 
     def _ahead(self, time: float, distance: float, lateral: float = 0.0) -> np.ndarray:
         """Floor point ``distance`` m in front of the camera (horizontally) and ``lateral`` m to its
