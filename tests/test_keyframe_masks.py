@@ -46,6 +46,21 @@ def test_in_a_standing_persons_box_only_motion_evidence_counts_and_a_walker_keep
     assert overlap[8:40, 10:20].all() and not overlap[8:40, 20:40].any()
 
 
+
+def test_the_free_space_regions_leave_a_person_shown_standing_and_still_raise_a_walker():
+    """A walker who has just stopped stands where the frames a quarter to a whole second back saw through:
+    the free-space test calls that region moved, while the standing rule has seen them still over its
+    window. Over the standing person the region raises nothing; over the walker it does."""
+    parts = _parts(_box_mask(PERSON, WALKER), np.zeros(SHAPE, np.float32))
+    parts.still_region = still_region(SHAPE, [PERSON, WALKER], [True, False])
+    seen_through = _box_mask(PERSON, WALKER) > 0
+    parts.free_space = (seen_through, seen_through, seen_through)     # moving, known, moved region
+    mask, still_people = compose_mask(parts)
+    assert not (mask[8:40, 10:30] >= 0.5).any() and still_people[8:40, 10:30].all()
+    assert (mask[8:40, 40:60] >= 0.5).all()
+    parts.still_region = None                                          # nobody shown standing: both raised
+    assert (compose_mask(parts)[0][seen_through] >= 0.5).all()
+
 def test_a_motion_methods_detections_only_output_is_no_evidence_of_motion_in_the_masks():
     """flow_epipolar on its first frame (or without a fundamental matrix) flags every person box from the
     detections alone; with a segmenting method at 0.45 the noisy-OR would pass 0.5 on a person who may
