@@ -228,7 +228,8 @@ def compose_mask(parts: MaskParts) -> tuple[Optional[np.ndarray], Optional[np.nd
     people cover ``parts.still_region``: there, and off every person's body (``parts.off_body``), only the
     motion-measuring methods count (none in ``parts.settled_region``), and what the fusion would have flagged
     of them goes to the second mask.
-    The free-space test (``parts.free_space``) adds the regions it saw move, and flagged pixels it finds
+    The free-space test (``parts.free_space``) adds the regions it saw move (not over people shown standing
+    still), and flagged pixels it finds
     consistent with every frame that could tell go to the second mask too. Either may be None."""
     mask = None if parts.fused is None else parts.fused.copy()
     still_people = None
