@@ -229,8 +229,8 @@ def compose_mask(parts: MaskParts) -> tuple[Optional[np.ndarray], Optional[np.nd
     motion-measuring methods count (none in ``parts.settled_region``), and what the fusion would have flagged
     of them goes to the second mask.
     The free-space test (``parts.free_space``) adds the regions it saw move (not over people shown standing
-    still), and flagged pixels it finds
-    consistent with every frame that could tell go to the second mask too. Either may be None."""
+    still), and flagged pixels it finds consistent with every frame that could tell go to the second mask
+    too. Either may be None."""
     mask = None if parts.fused is None else parts.fused.copy()
     still_people = None
     regions = [r for r in (parts.still_region, parts.off_body, parts.vacated) if r is not None]
