@@ -92,7 +92,8 @@ class HardScene(SyntheticSequence):
             return [_walker(bodies[0], spot, self._across(start), 1.0, start, stand_until=start,
                             face=self._facing_camera(start - 1.0, spot))]
         # border: a person walking towards the camera, placed on the line of sight of the image's left
-        # edge at mid-sequence (half of them out of view then); the camera's pan carries them in or out.
+        # edge at ``_border_time()`` (mid-sequence here; half of them out of view then); the camera's pan
+        # carries them in or out.
         # They stop BORDER_STOP_M short of where the camera is then: a walker on a line of sight would
         # otherwise walk into the lens (the composites' camera barely moves; 2 cm on fr1/rpy).
         at = self._border_time()
