@@ -30,7 +30,6 @@ import argparse
 import sys
 from pathlib import Path
 
-
 from slam.datasets import SyntheticSequence
 from slam.datasets.composite import COMPOSITE_SCENES, CompositeScene
 from slam.datasets.synthetic_scenes import HARD_SCENES, HardScene
@@ -38,6 +37,11 @@ from slam.run.demo import DEMO_ORACLE_MARGIN_PX
 from slam.run.run_config import parse_overrides, resolve_run_config, seeded
 from slam.run.dynamic_eval import evaluate_synthetic, median_ate_ratio, scene_detector, synthetic_config
 
+MIN_MOVING_PX = 1000
+"""Fewer moving pixels than this over all keyframes (a third of a percent of one 640 x 480 image) and the
+masks' precision / recall describe a hand or a few fingers, not a person: the row says so instead. Composited
+``border`` on fr1/rpy was such a scene (477 moving pixels over 400 frames) until its walk moved to where the
+left border's line of sight is near level (``CompositeScene._border_time``)."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -87,12 +91,6 @@ def _sources(args, overrides: dict):
 def _sensing(sequence, min_range_m: float):
     sequence.sensor_min_range_m = min_range_m
     return sequence
-
-
-MIN_MOVING_PX = 1000
-"""Fewer moving pixels than this over all keyframes (a third of a percent of one 640 x 480 image) and the
-masks' precision / recall describe a hand or a few fingers, not a person: the row says so instead. Composited
-``border`` on fr1/rpy is such a scene: its walk happens out of view (477 moving pixels over 400 frames)."""
 
 
 def _mask_pr(fused) -> str:

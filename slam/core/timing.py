@@ -1,5 +1,4 @@
-"""Per-module wall-clock timing and the CPU time of the thread that ran each block, kept per frame so the
-summary can report medians; a block's thread CPU."""
+"""Per-module wall-clock and thread-CPU milliseconds, kept per frame so the summary can report medians."""
 from __future__ import annotations
 
 import time
@@ -7,6 +6,13 @@ from collections import defaultdict
 from contextlib import contextmanager
 
 import numpy as np
+
+_WALL, _CPU = 0, 1      # the columns of a module's per-frame record
+
+
+def _clocks_ms() -> np.ndarray:
+    """Wall time and the calling thread's CPU time, in milliseconds."""
+    return np.array([time.perf_counter(), time.thread_time()]) * 1e3
 
 
 @contextmanager
@@ -27,39 +33,36 @@ class ModuleTimer:
     what a module itself costs. Blocks may run on several threads (cpr's registration runs on its own)."""
 
     def __init__(self):
-        self._frames: list[dict[str, float]] = []
-        self._cpu_frames: list[dict[str, float]] = []
-        self._current: dict[str, float] = defaultdict(float)
-        self._cpu_current: dict[str, float] = defaultdict(float)
+        self._frames: list[dict[str, np.ndarray]] = []      # per frame: module -> [wall ms, CPU ms]
+        self._current: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(2))
 
     @contextmanager
     def measure(self, module: str):
-        start, cpu_start = time.perf_counter(), time.thread_time()
+        start = _clocks_ms()
         try:
             yield
         finally:
-            self._current[module] += (time.perf_counter() - start) * 1e3
-            self._cpu_current[module] += (time.thread_time() - cpu_start) * 1e3
+            self._current[module] += _clocks_ms() - start
 
     def end_frame(self) -> dict[str, float]:
-        """Close the current frame; 'total' is the sum of its top-level modules ('a.b' is a part of 'a')."""
+        """Close the current frame and return its wall milliseconds per module; 'total' is the sum of its
+        top-level modules ('a.b' is a part of 'a')."""
         frame = dict(self._current)
-        frame["total"] = sum(v for k, v in frame.items() if "." not in k)
+        frame["total"] = sum((v for k, v in frame.items() if "." not in k), np.zeros(2))
         self._frames.append(frame)
-        cpu = dict(self._cpu_current)
-        cpu["total"] = sum(v for k, v in cpu.items() if "." not in k)
-        self._cpu_frames.append(cpu)
-        self._current = defaultdict(float)
-        self._cpu_current = defaultdict(float)
-        return frame
+        self._current = defaultdict(lambda: np.zeros(2))
+        return {k: float(v[_WALL]) for k, v in frame.items()}
 
     def per_frame(self, module: str) -> np.ndarray:
-        """Milliseconds spent in ``module`` in each frame (0 where it did not run)."""
-        return np.array([f.get(module, 0.0) for f in self._frames])
+        """Wall milliseconds spent in ``module`` in each frame (0 where it did not run)."""
+        return self._column(module, _WALL)
 
     def cpu_per_frame(self, module: str) -> np.ndarray:
         """CPU milliseconds of the threads that ran ``module`` in each frame (0 where it did not run)."""
-        return np.array([f.get(module, 0.0) for f in self._cpu_frames])
+        return self._column(module, _CPU)
+
+    def _column(self, module: str, clock: int) -> np.ndarray:
+        return np.array([f[module][clock] if module in f else 0.0 for f in self._frames])
 
     def modules(self) -> list[str]:
         names = sorted({k for f in self._frames for k in f if k != "total"})
