@@ -7,12 +7,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-_WALL, _CPU = 0, 1      # the columns of a module's per-frame record
-
-
-def _clocks_ms() -> np.ndarray:
-    """Wall time and the calling thread's CPU time, in milliseconds."""
-    return np.array([time.perf_counter(), time.thread_time()]) * 1e3
+_WALL, _CPU = 0, 1      # the entries of a module's per-frame record
 
 
 @contextmanager
@@ -33,25 +28,29 @@ class ModuleTimer:
     what a module itself costs. Blocks may run on several threads (cpr's registration runs on its own)."""
 
     def __init__(self):
-        self._frames: list[dict[str, np.ndarray]] = []      # per frame: module -> [wall ms, CPU ms]
-        self._current: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(2))
+        self._frames: list[dict[str, list[float]]] = []      # per frame: module -> [wall ms, CPU ms]
+        self._current: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0])
 
     @contextmanager
     def measure(self, module: str):
-        start = _clocks_ms()
+        # Plain floats: ~50 blocks a frame on the tracking thread, where numpy's per-call cost would show.
+        start, cpu_start = time.perf_counter(), time.thread_time()
         try:
             yield
         finally:
-            self._current[module] += _clocks_ms() - start
+            record = self._current[module]
+            record[_WALL] += (time.perf_counter() - start) * 1e3
+            record[_CPU] += (time.thread_time() - cpu_start) * 1e3
 
     def end_frame(self) -> dict[str, float]:
         """Close the current frame and return its wall milliseconds per module; 'total' is the sum of its
         top-level modules ('a.b' is a part of 'a')."""
         frame = dict(self._current)
-        frame["total"] = sum((v for k, v in frame.items() if "." not in k), np.zeros(2))
+        top = [v for k, v in frame.items() if "." not in k]
+        frame["total"] = [sum(v[_WALL] for v in top), sum(v[_CPU] for v in top)]
         self._frames.append(frame)
-        self._current = defaultdict(lambda: np.zeros(2))
-        return {k: float(v[_WALL]) for k, v in frame.items()}
+        self._current = defaultdict(lambda: [0.0, 0.0])
+        return {k: v[_WALL] for k, v in frame.items()}
 
     def per_frame(self, module: str) -> np.ndarray:
         """Wall milliseconds spent in ``module`` in each frame (0 where it did not run)."""
