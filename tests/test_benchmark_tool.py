@@ -23,15 +23,43 @@ def test_mapping_line_gives_the_median_update_and_the_marks_reached():
 
 def test_speed_table_has_the_ratio_to_the_peer_and_dashes_for_what_is_missing():
     rows = [{"system": "dynslam", "sequence": "seq", "whole_run_ms_per_frame": 30.0,
-             "latency_ms": {"median": 20.0, "p95": 50.0}, "backend_ms_at_keyframes": {50: 40.0}},
+             "latency_ms": {"median": 20.0, "p95": 50.0}, "backend_ms_at_keyframes": {50: 40.0},
+             "cost_trend": {"first_ms": 18.0, "last_ms": 22.5, "ratio": 1.25}},
             {"system": "ORB-SLAM3 (stock)", "sequence": "seq", "median_ms": {"total": 12.0}},
             {"system": "dynslam", "sequence": "alone", "whole_run_ms_per_frame": 10.0,
              "latency_ms": {"median": 5.0, "p95": 9.0}, "backend_ms_at_keyframes": {}}]
     lines = benchmark.speed_table(rows).splitlines()
     assert lines[0].startswith("| sequence | whole-run ms/frame | latency median | latency p95 |")
-    assert lines[2] == "| seq | 30.0 | 20.0 | 50.0 | 40.0 | – | – | – | 12.0 | 2.5x |"
-    assert lines[3] == "| alone | 10.0 | 5.0 | 9.0 | – | – | – | – | – | – |"
+    assert lines[2] == "| seq | 30.0 | 20.0 | 50.0 | 18.0 / 22.5 (1.25) | 40.0 | – | – | – | 12.0 | 2.5x |"
+    assert lines[3] == "| alone | 10.0 | 5.0 | 9.0 | – | – | – | – | – | – | – |"
     assert len(lines) == 4, "the peer is a column, not a row"
+
+
+def test_cost_trend_compares_the_first_and_last_quarter_after_the_first_second():
+    ms = np.concatenate([np.full(benchmark.TREND_WARMUP_FRAMES, 500.0), np.full(100, 20.0), np.full(100, 30.0)])
+    trend = benchmark.cost_trend(ms)          # quarters of the 200 frames after the warm-up: 50 frames each
+    assert trend == {"first_ms": 20.0, "last_ms": 30.0, "ratio": 1.5}
+    assert benchmark.cost_trend(np.ones(benchmark.TREND_WARMUP_FRAMES + 3)) == {}
+
+
+def _dynslam_row(sequence: str, whole_run_ms: float, ate_m: float, trend_ratio: float = 1.0) -> dict:
+    return {"system": "dynslam", "sequence": sequence, "whole_run_ms_per_frame": whole_run_ms, "ate_rmse_m": ate_m,
+            "cost_trend": {"first_ms": 20.0, "last_ms": 20.0 * trend_ratio, "ratio": trend_ratio}}
+
+
+def test_check_holds_each_sequence_to_the_issues_targets(capsys):
+    peer = {"system": "ORB-SLAM3 (stock)", "sequence": "rgbd_dataset_freiburg1_rpy_first400", "median_ms": {"total": 12.0}}
+    rpy = "rgbd_dataset_freiburg1_rpy_first400"
+    assert benchmark._check_targets([_dynslam_row(rpy, 24.0, 0.0240), peer]) == 0
+    assert benchmark._check_targets([_dynslam_row("rgbd_bonn_crowd_first480", 44.0, 0.0120)]) == 0
+    capsys.readouterr()
+    assert benchmark._check_targets([_dynslam_row(rpy, 129.7, 0.0233), peer]) == 1
+    err = capsys.readouterr().err
+    assert "whole run 129.7 ms/frame > 25.0 ms" in err and "10.8x the ORB-SLAM3 peer's tracking > 2.0x" in err
+    assert benchmark._check_targets([_dynslam_row(rpy, 20.0, 0.0260, trend_ratio=1.3), peer]) == 1
+    err = capsys.readouterr().err
+    assert "ATE 0.0260 m > 0.0253 m" in err and "last quarter's step 26.0 ms > 1.25 x the first quarter's 20.0" in err
+    assert "whole run" not in err          # 20 ms/frame, 1.7x the peer: both within
 
 
 def _long_report(first_ms: float, last_ms: float) -> dict:
