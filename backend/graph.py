@@ -162,6 +162,10 @@ class FactorGraphBackend:
         """iSAM2 already holds the whole map's solution: ``iterations`` more updates, relinearising."""
         self._update(iterations, True)     # not a keyframe's update: not in update_cpu_ms
 
+    @property
+    def holding_back(self) -> bool:
+        return False           # solved in process: every update's estimates are there at once
+
     # --- estimates ------------------------------------------------------------------------------
     def keyframe_pose(self, kf_id: int) -> np.ndarray:
         if self._estimate is None or not self._estimate.exists(X(kf_id)):

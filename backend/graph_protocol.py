@@ -50,6 +50,13 @@ class GraphBackend(Protocol):
     def num_factors(self) -> int: ...
 
     @property
+    def holding_back(self) -> bool:
+        """Whether the last ``update`` held its estimates back for a later keyframe (a worker solving a loop's
+        correction: ``backend.loop_result_keyframes``): the estimates reported are those already taken up,
+        and taking them up again would undo what the caller moved since. False in process."""
+        ...
+
+    @property
     def update_cpu_ms(self) -> Sequence[float]:
         """CPU milliseconds of every ``update`` applied so far, in order: what the back end costs per
         keyframe, wherever it runs (a worker process measures its own, graph building included)."""

@@ -78,7 +78,8 @@ class LocalMapper:
         """Update the graph (``relinearize`` after a loop changed), take its estimates, cull landmarks;
         returns how many were culled."""
         self.graph.update(extra_updates=extra_updates, relinearize=relinearize)
-        self._pull_estimates()
+        if not self.graph.holding_back:   # a worker's loop correction not due yet: nothing new to take up
+            self._pull_estimates()
         return self._cull_landmarks(self.map.num_keyframes - 1)
 
     def record_tracking(self, visible_ids: np.ndarray, found_ids: np.ndarray) -> None:
@@ -164,6 +165,17 @@ class LocalMapper:
         obs = self.map.observations
         rows = self.map.observation_rows(to_promote)
         self.add_factors(rows[~obs.in_graph[rows]])
+
+    def move_rigidly(self, kf_ids: np.ndarray, correction: np.ndarray) -> None:
+        """Move keyframes and the landmarks created in them by ``correction`` (a 4x4 world-frame move), in
+        the map only: the graph keeps its values until its next estimates come. Landmarks created elsewhere
+        stay, though these keyframes observe them: an old landmark re-observed is where the old map has it."""
+        kf_ids = np.asarray(kf_ids, np.int64)
+        self.map.kf_T_wc[kf_ids] = correction @ self.map.kf_T_wc[kf_ids]
+        lm = self.map.landmarks
+        moved = np.flatnonzero(lm.in_graph & ~lm.bad & np.isin(lm.anchor_kf, kf_ids))
+        lm.xyz[moved] = lm.xyz[moved] @ correction[:3, :3].T + correction[:3, 3]
+        self.map.refresh_anchored()    # the landmarks not in the graph follow their anchor keyframe
 
     def refresh_from_graph(self) -> None:
         """Copy the graph's current estimates into the map (after an update outside insert_keyframe)."""

@@ -58,9 +58,13 @@ class LoopEdge:
 
 class LoopCloser:
     def __init__(self, cfg: LoopConfig, mapper: LocalMapper, vocabulary: Vocabulary, dynamic_threshold: float = 0.5,
-                 seed: int = 0) -> None:
+                 seed: int = 0, correct_at_once: bool = False) -> None:
         self.cfg = cfg
         self.mapper = mapper
+        # Whether a closed loop's neighbourhood is moved in the map at once (``correct_neighbourhood``): for a
+        # graph whose loop correction arrives some keyframes later, while tracking goes on.
+        self.correct_at_once = correct_at_once
+        self._neighbourhood: Optional[tuple[LoopEdge, np.ndarray]] = None   # the loop closed, its keyframes
         self.detector = LoopDetector(
             vocabulary, mapper.camera, min_covisible_shared=cfg.min_covisible_shared, consistency=cfg.consistency,
             min_inliers=cfg.min_inliers, dynamic_threshold=dynamic_threshold, min_score_ratio=cfg.min_score_ratio,
@@ -102,10 +106,35 @@ class LoopCloser:
         """Add a verified loop to the graph, fuse its landmarks and re-optimise."""
         edge = self.add_constraint(candidate.match_kf, candidate.query_kf, candidate.T_match_query,
                                    candidate.n_inliers, candidate.score, "detected", optimize=False)
+        if self.correct_at_once:     # before the fusion links the two sides in the covisibility
+            self._neighbourhood = (edge, self._query_side(candidate.match_kf, candidate.query_kf))
         if self.cfg.fuse_landmarks:
             edge.fused_landmarks = fuse_loop_landmarks(self.mapper, candidate.query_kf, candidate.matches)
         self.optimize()
         return edge
+
+    def _query_side(self, match_kf: int, query_kf: int) -> np.ndarray:
+        """The query keyframe and its covisible keyframes, less the match and its covisible ones (sorted)."""
+        slam_map = self.mapper.map
+        limit = slam_map.num_keyframes
+        old_side = set(slam_map.covisible_keyframes(match_kf, limit=limit).tolist()) | {match_kf}
+        near = {query_kf, *slam_map.covisible_keyframes(query_kf, limit=limit).tolist()} - old_side
+        return np.array(sorted(near), np.int64)
+
+    def correct_neighbourhood(self) -> None:
+        """ORB-SLAM's first step of CorrectLoop, for the loop just closed (if ``correct_at_once``): its query
+        side moves rigidly to where the loop puts the query keyframe, with the landmarks made there, so that
+        tracking meets one consistent map (the fused landmarks are the match side's) until the graph's
+        correction arrives, which then spreads the loop's error along it. Called after the keyframe's graph
+        update has taken up the estimates due then, which would otherwise move the keyframes back."""
+        if self._neighbourhood is None:
+            return
+        (edge, near), self._neighbourhood = self._neighbourhood, None
+        if not edge.active:
+            return
+        T_wc = self.mapper.map.kf_T_wc
+        correction = T_wc[edge.match_kf] @ edge.T_match_query @ np.linalg.inv(T_wc[edge.query_kf])
+        self.mapper.move_rigidly(near, correction)
 
     def add_constraint(self, match_kf: int, query_kf: int, T_match_query: np.ndarray, n_inliers: int = 0,
                        score: float = 0.0, source: str = "injected", optimize: bool = True) -> LoopEdge:

@@ -252,6 +252,10 @@ class LocalWindowBackend(LoopCorrection):
                      iterations or self.window.final_iterations, self.window.final_relative_tol)
         self._solved = True
 
+    @property
+    def holding_back(self) -> bool:
+        return False           # solved in process: every update's estimates are there at once
+
     def _window(self, focus: int, new: list[int]) -> set[int]:
         """The focus keyframe and its most covisible keyframes (shared graph landmarks), plus any other
         keyframe added since the last update."""

@@ -194,3 +194,33 @@ def test_local_mapper_culls_single_view_landmarks_after_cull_after_keyframes(map
     # Culled landmarks disappear from what tracking is offered.
     pts = run.mapper.map.map_points(np.arange(len(run.mapper.map.landmarks)))
     assert not np.isin(pts.ids, single_kf0).any()
+
+
+def test_move_rigidly_moves_keyframes_and_the_landmarks_made_in_them_only(mapper_run):
+    """A loop's query side moved at once (``LoopCloser.correct_neighbourhood``): the keyframes and the
+    landmarks created in them, in the graph or anchored; an older landmark they re-observe stays where the
+    older map has it. The graph's values are not touched. Moved back afterwards (a shared fixture)."""
+    from scipy.spatial.transform import Rotation
+
+    slam_map = mapper_run.mapper.map
+    lm = slam_map.landmarks
+    correction = np.eye(4)
+    correction[:3, :3] = Rotation.from_euler("z", 5, degrees=True).as_matrix()
+    correction[:3, 3] = [0.1, -0.05, 0.02]
+    poses, xyz = slam_map.kf_T_wc.copy(), lm.xyz.copy()
+    graph_before = mapper_run.mapper.graph.landmark_positions()[1].copy()
+    made_late = np.isin(lm.anchor_kf, [1, 2, 3]) & ~lm.bad
+    seen_late_made_early = np.intersect1d(slam_map.landmarks_of_keyframes(np.array([1])),
+                                          np.flatnonzero(lm.anchor_kf < 1))
+    assert made_late.any() and (made_late & lm.in_graph).any() and len(seen_late_made_early)
+    mapper_run.mapper.move_rigidly(np.array([1, 2, 3]), correction)
+    try:
+        np.testing.assert_allclose(slam_map.kf_T_wc[[1, 2, 3]], correction @ poses[[1, 2, 3]], atol=1e-12)
+        np.testing.assert_array_equal(slam_map.kf_T_wc[[0]], poses[[0]])
+        np.testing.assert_allclose(lm.xyz[made_late], xyz[made_late] @ correction[:3, :3].T + correction[:3, 3],
+                                   atol=1e-9)
+        np.testing.assert_array_equal(lm.xyz[seen_late_made_early], xyz[seen_late_made_early])
+        np.testing.assert_array_equal(mapper_run.mapper.graph.landmark_positions()[1], graph_before)
+    finally:
+        mapper_run.mapper.move_rigidly(np.array([1, 2, 3]), np.linalg.inv(correction))
+    np.testing.assert_allclose(slam_map.kf_T_wc, poses, atol=1e-12)

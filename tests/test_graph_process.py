@@ -114,6 +114,46 @@ def test_handles_agree_and_removal_needs_no_round_trip(process_graph):
         process_graph.remove_factors([3])
 
 
+def test_a_loops_result_is_applied_at_a_fixed_later_update_and_the_updates_between_fold():
+    """``backend.loop_result_keyframes`` 3: after the update that changes a loop (relinearize), the next two
+    neither wait nor take anything up (``holding_back``; the loop's residual is not known yet); the third
+    applies the loop's result and sends one update for the keyframes of all three, so nothing is lost."""
+    graph = GraphProcess(_spec(window_keyframes=4, loop_result_keyframes=3))
+    try:
+        loop = _solved_pair_with_wrong_loop(graph)
+        graph.update(relinearize=True)                 # the loop's update goes out
+        assert not graph.holding_back
+        before, waits = graph.keyframe_poses(), graph.waits
+        for kf in (2, 3):                              # two keyframes while it is solved: folded, nothing waits
+            graph.add_keyframe(kf, np.eye(4))
+            graph.add_relative_pose(kf - 1, kf, np.eye(4), 0.05, 2.0)
+            graph.update()
+            assert graph.holding_back and graph.waits == waits
+            np.testing.assert_array_equal(graph.keyframe_poses()[1], before[1])
+            if kf == 2:     # at the due keyframe (the next) a loop check may wait for the result
+                assert graph.relative_pose_error(loop) == (0.0, 0.0)
+        graph.add_keyframe(4, np.eye(4))
+        graph.add_relative_pose(3, 4, np.eye(4), 0.05, 2.0)
+        graph.update()                                 # due: the loop's result is applied here
+        assert not graph.holding_back
+        assert list(graph.keyframe_poses()[0]) == [0, 1]
+        assert graph.relative_pose_error(loop)[0] > 0.5
+        graph.sync()                                   # the folded update covered keyframes 2-4
+        assert list(graph.keyframe_poses()[0]) == [0, 1, 2, 3, 4]
+        assert len(graph.update_cpu_ms) == 3           # first, the loop's, the folded one
+    finally:
+        graph.close()
+
+
+def test_by_default_the_update_after_a_loops_waits_for_its_result(process_graph):
+    loop = _solved_pair_with_wrong_loop(process_graph)
+    process_graph.update(relinearize=True)
+    process_graph.add_keyframe(2, np.eye(4))
+    process_graph.add_relative_pose(1, 2, np.eye(4), 0.05, 2.0)
+    process_graph.update()
+    assert not process_graph.holding_back and process_graph.relative_pose_error(loop)[0] > 0.5
+
+
 def test_a_failure_in_the_worker_names_the_step():
     """A pose of NaNs (a bug upstream) fails in the worker: the error names the command and the cause."""
     graph = GraphProcess(_spec())

@@ -169,8 +169,22 @@ class BackendConfig(ConfigSection):
 
     worker_process: bool = True
     """Solve the graph in a worker process so tracking does not wait for it (slam/runtime/graph_process.py);
-    results are applied at the next keyframe, so runs stay deterministic (a keyframe that changes a loop
-    waits for its correction). False: solve in line (what a debugger or a profiler wants)."""
+    results are applied at the next keyframe, so runs stay deterministic. False: solve in line (what a
+    debugger or a profiler wants)."""
+    loop_result_keyframes: int = Field(0, ge=0)
+    """With the worker process (dataset mode): 0, the keyframe that closes (or drops) a loop waits for the
+    loop's correction (0.5-2 s of the worker's CPU on Bonn crowd-480; every later pose, landmark and loop
+    check builds on the corrected map). k >= 1: tracking goes on; the loop's query side moves rigidly in the
+    map at once (ORB-SLAM's first step of CorrectLoop), the keyframes between hand the worker nothing (their
+    windows folded into one, as ORB-SLAM's local mapping stops while a loop is corrected), and the
+    correction is applied at the k-th keyframe after, waiting only if the worker is not done; still
+    deterministic. 4 covers a 2 s correction at this machine's ~0.8 s per keyframe. Measured with 4 against
+    0 (2026-12-01, `tools/benchmark.py --set backend.loop_result_keyframes=4`; docs/design.md "Runtime"):
+    tracking's wait for the back end Bonn 14.2 -> 3.7 ms/frame (longest 2.1 s -> 0.3 s), fr1/rpy 7.7 ->
+    2.8; Bonn's whole run 166 -> 149 ms/frame; ATE fr1/rpy 0.0233 -> 0.0225 m, Bonn 0.0102 -> 0.0101 m but
+    frames 447-450 LOST, its dense map's ghost share 0.0030 -> 0.0032 (over the gate of
+    tests/test_map_export.py), the drift room of tests/test_loop_closing.py 0.0185 -> 0.0226 m. Not the
+    default yet: accuracy first."""
     optimizer: Literal["window", "isam2"] = "window"
     """"window": local bundle adjustment around each new keyframe, loops through a pose graph and a
     bundle adjustment of the loop's span (backend/window_graph.py; cost per keyframe flat as the map

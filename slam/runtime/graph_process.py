@@ -13,6 +13,12 @@ processes: the same input and config give the same trajectory byte for byte. Unt
 new keyframes and landmarks keep the poses tracking gave them, as they would in ORB-SLAM while its local
 bundle adjustment runs.
 
+A loop's update (``relinearize``) may be given longer (``backend.loop_result_keyframes`` k >= 1): its
+result is applied at the k-th update after it, and the updates between are folded here into the one sent
+then (the worker solves one batch at a time, and a window behind the loop's correction would wait anyway);
+``holding_back`` says so, and the loop's residual is unknown until then. Still a fixed point of the frame
+sequence, so still deterministic. With 0 (the default) the caller waits for the loop's result at once.
+
 Realtime mode (``realtime=True``, ``runtime.realtime``): nothing ever waits for the worker except
 ``sync()`` / ``optimize_all()``. ``update()`` hands the batch over only if the worker is free; otherwise
 the commands stay here and the update is folded into the next one (one update with every command since,
@@ -118,6 +124,11 @@ class GraphProcess:
         self._batch: list[tuple] = []
         self._in_flight = False
         self._update_in_flight = False            # the batch in flight holds an update (not only optimize_all)
+        # Dataset mode: a loop's correction is applied loop_result_keyframes updates after the one that sent it;
+        # the updates between are folded here (``update``).
+        self._loop_result_keyframes = int(spec.config.loop_result_keyframes)
+        self._fold_left = 0                       # updates still to fold before the loop's result is due
+        self._loop_in_flight = False              # the batch in flight changed a loop (relinearises)
         self.update_cpu_ms: list[float] = []      # the worker's CPU per update batch (GraphBackend)
         self._keyframes: set[int] = set()
         self._landmarks: set[int] = set()
@@ -129,6 +140,7 @@ class GraphProcess:
         self._kf_ids, self._kf_poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
         self._lm_ids, self._lm_xyz = np.zeros(0, np.int64), np.zeros((0, 3))
         self.waits = 0          # updates that found the worker still busy (tracking waited)
+        self._holding_back = False              # the last update folded (a loop's correction not due yet)
         self.folded = 0         # realtime: updates folded into a later one (the worker was busy)
 
     # --- variables ------------------------------------------------------------------------------
@@ -185,8 +197,9 @@ class GraphProcess:
         if handle not in self._solved_relative and handle in self._sent_relative and self._in_flight:
             if self.realtime:
                 self.poll()       # never wait: if its result is not back yet, it has no residual yet
-            else:
-                self._collect()   # its update was sent: wait for it (a check right after adding a loop)
+            elif self._fold_left == 0:
+                self._collect()   # its update was sent and its result is due: wait for it
+            # else its result is not due yet (a loop's correction): no residual until it is applied
         if handle not in self._solved_relative:
             return 0.0, 0.0
         a, b, T_ab = self._relative[handle]
@@ -208,9 +221,19 @@ class GraphProcess:
         Realtime: apply a result only if it has arrived, send the batch only if the worker is free (else
         fold this update into the next one); never waits."""
         command = ("update", extra_updates, relinearize)
+        self._holding_back = not self.realtime and self._fold_left > 0
         if not self.realtime:
+            if self._fold_left > 0:
+                # A loop's correction is being solved: this keyframe's window waits for it, folded into the
+                # update that follows the correction (tracking goes on against the uncorrected map).
+                self._fold_left -= 1
+                self._batch = _fold_updates(self._batch, command)
+                return
             self._collect()
-            self._send(command)
+            self._batch = _fold_updates(self._batch, command)
+            self._send_waiting()
+            if self._loop_in_flight and self._loop_result_keyframes > 0:
+                self._fold_left = self._loop_result_keyframes - 1
             return
         self.folded += any(c[0] == "update" for c in self._batch)
         self._batch = _fold_updates(self._batch, command)
@@ -232,13 +255,16 @@ class GraphProcess:
 
     def optimize_all(self, iterations: Optional[int] = None) -> None:
         """Synchronous: the whole-map adjustment, for the end of a run."""
+        self._fold_left = 0
         self._collect()
         self._send(("optimize_all", iterations))
         self._collect()
 
     def sync(self) -> None:
         """Wait for the update in flight and apply it (the end of a run, or a test); realtime: also send
-        the update still waiting here and wait for its result."""
+        the update still waiting here and wait for its result; dataset mode: also the updates folded while a
+        loop's correction was solved."""
+        self._fold_left = 0
         self._collect()
         if self._send_waiting():
             self._collect()
@@ -271,6 +297,10 @@ class GraphProcess:
     def num_factors(self) -> int:
         return len(self._live)
 
+    @property
+    def holding_back(self) -> bool:
+        return self._holding_back
+
     # --- helpers --------------------------------------------------------------------------------
     def _send(self, command: tuple) -> None:
         batch, self._batch = self._batch + [command], []
@@ -295,6 +325,7 @@ class GraphProcess:
             raise self._died() from exc
         self._in_flight = True
         self._update_in_flight = any(c[0] == "update" for c in batch)
+        self._loop_in_flight = any(c[0] == "update" and c[2] for c in batch)
 
     def _collect(self) -> None:
         if not self._in_flight:
@@ -315,6 +346,7 @@ class GraphProcess:
         _, (self._kf_ids, self._kf_poses), (self._lm_ids, self._lm_xyz), cpu_ms = reply
         if self._update_in_flight:
             self.update_cpu_ms.append(cpu_ms)
+        self._loop_in_flight = False
         self._solved_relative = self._sent_relative & set(self._relative)
 
     def _died(self) -> BackendError:

@@ -90,7 +90,13 @@ class System:
         are indexed up front so a localisation run can relocalise anywhere in it."""
         cfg, threshold = self.config.loop, self.config.tracking.dynamic_threshold
         vocabulary = vocabulary or load_vocabulary(cfg.vocabulary or None)
-        self.loop_closer = LoopCloser(cfg, self.mapper, vocabulary, threshold, self.config.seed)
+        backend = self.config.backend
+        # A loop's correction that arrives keyframes later (backend.loop_result_keyframes, from the worker
+        # process): its query side moves in the map at once, so tracking meets one consistent map meanwhile.
+        deferred = (backend.worker_process and backend.loop_result_keyframes > 0
+                    and self.config.runtime.realtime is not True)
+        self.loop_closer = LoopCloser(cfg, self.mapper, vocabulary, threshold, self.config.seed,
+                                      correct_at_once=deferred)
         params = PnpParams(min_inliers=cfg.reloc_min_inliers, reprojection_error=cfg.reprojection_error,
                            depth_tolerance=cfg.depth_tolerance, seed=self.config.seed)
         self.relocalizer = Relocalizer(self.loop_closer.index, self.camera, params, cfg.reloc_candidates, threshold,
