@@ -42,6 +42,17 @@ def test_cost_trend_compares_the_first_and_last_quarter_after_the_first_second()
     assert benchmark.cost_trend(np.ones(benchmark.TREND_WARMUP_FRAMES + 3)) == {}
 
 
+def test_module_trend_line_names_the_modules_that_changed_most():
+    trends = {"tracking": {"first_ms": 20.0, "last_ms": 21.0, "ratio": 1.05},
+              "backend": {"first_ms": 2.8, "last_ms": 36.7, "ratio": 13.1},
+              "dynamic.box_depth": {"first_ms": 4.5, "last_ms": 44.9, "ratio": 10.0},
+              "dynamic.prepare_wait": {"first_ms": 25.0, "last_ms": 6.0, "ratio": 0.24}, "loop": {}}
+    line = benchmark.module_trend_line(trends)
+    assert line.endswith("dynamic.box_depth 4.5 -> 44.9, backend 2.8 -> 36.7, dynamic.prepare_wait 25.0 -> 6.0, "
+                         "tracking 20.0 -> 21.0")
+    assert benchmark.module_trend_line({"loop": {}}).endswith("run too short")
+
+
 def _dynslam_row(sequence: str, whole_run_ms: float, ate_m: float, trend_ratio: float = 1.0) -> dict:
     return {"system": "dynslam", "sequence": sequence, "whole_run_ms_per_frame": whole_run_ms, "ate_rmse_m": ate_m,
             "cost_trend": {"first_ms": 20.0, "last_ms": 20.0 * trend_ratio, "ratio": trend_ratio}}

@@ -19,7 +19,8 @@ benchmark.json):
   the whole-run time (near it, the run is CPU-bound); the mapping back end's own CPU per keyframe update
   around the same marks (``GraphBackend.update_cpu_ms``: measured in the worker process, graph building
   included); each dynamic method's median wall ms per frame;
-- accuracy and modules: ATE RMSE, median ms per frame per module, loops and relocalization;
+- accuracy and modules: ATE RMSE, median ms per frame per module, loops and relocalization; the modules
+  whose mean wall ms per frame changed most from the first quarter of the run to the last;
 - with ``--long-run N`` (issue 10 asks N >= 5,000): ``tools/memory.py`` on N frames of the generated orbit,
   which returns to its start pose every 1,885 frames, in its own process: mean per-frame step over the
   first and the last 1,000 frames and their ratio (target <= 1.25), keyframes, peak memory.
@@ -84,6 +85,8 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
         "cpu_s": cpu.seconds,           # by thread / process (tools/cpu_usage.py)
         "latency_ms": {"median": float(np.median(total_ms)), "p95": float(np.percentile(total_ms, 95))},
         "cost_trend": cost_trend(total_ms),
+        # each module's wall ms per frame over the first and the last quarter: what made the step climb
+        "module_trend": {m: cost_trend(timer.per_frame(m)) for m in timer.modules() if m != "total"},
         "backend_ms_at_keyframes": backend_cost_at_marks(keyframe_ms),
         # the mapping back end's own CPU per keyframe update (in the worker process by default)
         "mapping_update_cpu_ms": [float(x) for x in pipeline.system.mapper.graph.update_cpu_ms],
@@ -217,6 +220,21 @@ def module_cpu_line(cpu_ms: dict[str, float]) -> str:
         f"{name} {ms:.1f}" for name, ms in sorted(cpu_ms.items(), key=lambda kv: -kv[1]) if name != "total")
 
 
+TREND_LINE_MODULES = 6   # the modules whose mean changed most between the quarters
+
+
+def module_trend_line(trends: dict[str, dict]) -> str:
+    """The modules whose mean wall ms per frame changed most from the first quarter of the run to the last
+    (``cost_trend``), largest change first: where a climbing step comes from (people coming into view, a
+    back end tracking waits for)."""
+    moved = sorted(((name, t) for name, t in trends.items() if t),
+                   key=lambda kv: -abs(kv[1]["last_ms"] - kv[1]["first_ms"]))
+    if not moved:
+        return "step by module, first / last quarter: run too short"
+    return "step by module, mean wall ms per frame, first -> last quarter: " + ", ".join(
+        f"{name} {t['first_ms']:.1f} -> {t['last_ms']:.1f}" for name, t in moved[:TREND_LINE_MODULES])
+
+
 def _num(value) -> str:
     return "–" if value is None else f"{value:.1f}"
 
@@ -300,7 +318,8 @@ def main(argv=None) -> int:
         f"{r['sequence']}: {cpu_line(r['cpu_s'], r['frames'], r['whole_run_s'])}\n"
         f"{r['sequence']}: {mapping_line(np.asarray(r.get('mapping_update_cpu_ms', [])))}\n"
         f"{r['sequence']}: {method_line(r.get('method_ms', {}))}\n"
-        f"{r['sequence']}: {module_cpu_line(r.get('module_cpu_ms', {}))}" for r in rows
+        f"{r['sequence']}: {module_cpu_line(r.get('module_cpu_ms', {}))}\n"
+        f"{r['sequence']}: {module_trend_line(r.get('module_trend', {}))}" for r in rows
         if r["system"] == "dynslam" and r.get("cpu_s"))
     long_report = None
     if args.long_run:
