@@ -200,14 +200,14 @@ class TrackingLoop:
         with self.timer.measure("backend"):
             self.mapper.solve(relinearize=loop_changed,
                               extra_updates=self.config.loop.extra_updates if loop_changed else None)
-            if loop_changed and not self.realtime and self.config.backend.loop_result_keyframes == 0:
+            if loop_changed and not self.realtime and not self.loop_closer.correct_at_once:
                 # The keyframe that closes (or drops) a loop waits for its correction, as ORB-SLAM's
                 # tracking waits on the map-update lock while a loop is corrected: every later pose,
                 # landmark and loop check builds on the corrected map (the drift room of
-                # tests/test_loop_closing.py: ATE 0.0185 m). With backend.loop_result_keyframes k >= 1 it
-                # goes on: the loop's query side moves at once (correct_neighbourhood, below) and the
-                # correction comes k keyframes later (0.0226 m there). Realtime never waits: the
-                # correction reaches tracking when it arrives.
+                # tests/test_loop_closing.py: ATE 0.0185 m). With backend.loop_result_keyframes k >= 1 and
+                # the worker process (System decides: correct_at_once) it goes on: the loop's query side
+                # moves at once (correct_neighbourhood, below), the correction comes k keyframes later
+                # (0.0226 m there). Realtime never waits: the correction reaches tracking when it arrives.
                 self.mapper.sync()
         self.loop_closer.correct_neighbourhood()
         T_wc = self.mapper.map.kf_T_wc[kf_id].copy()
