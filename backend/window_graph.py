@@ -8,7 +8,7 @@ and builds the same factors (``backend.factors``), but never solves the whole ma
   keyframes and every graph landmark they observe. Keyframes outside the window that observe those
   landmarks (or share a relative-pose factor with the window) enter as fixed poses (tight priors):
   they hold the window in place the way ORB-SLAM's fixed keyframes do. The cost depends on the window,
-  not on the map: measured with tools/memory.py (README, "Speed").
+  not on the map: measured with tools/memory.py (README, "Tests", "Long runs and memory").
 * ``update(relinearize=True)`` (after a loop is added or removed): first a pose graph over the loop's
   span (the keyframes from the oldest one a changed relative factor touches on) — the graph's own
   relative-pose factors plus an essential graph built from the current estimate (each keyframe to the
