@@ -33,6 +33,22 @@ class FrameLog:
     def last_T_kf_c(self) -> np.ndarray:
         return self._T_kf_c[-1]
 
+    def reference_of(self, position: int) -> int:
+        """The reference keyframe of the frame at ``position`` (-1: not tracked)."""
+        return self._reference_kf[position]
+
+    def relative_pose(self, position: int) -> np.ndarray:
+        """The frame's pose relative to its reference keyframe."""
+        return self._T_kf_c[position]
+
+    def replace(self, position: int, T_kf_c: np.ndarray, position_cov: np.ndarray) -> None:
+        """A tracked frame's new estimate (frame_refinement): the same reference keyframe, a new relative pose
+        and camera-centre covariance."""
+        if self._reference_kf[position] < 0:
+            raise ValueError(f"frame {position} was not tracked: it has no pose to replace")
+        self._T_kf_c[position] = T_kf_c
+        self._position_cov[position] = position_cov
+
     def trajectory(self, kf_T_wc: np.ndarray, sigma_acc: float = 0.0,
                    huber_chi2: float = float("inf")) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(timestamps (N,), T_wc (N,4,4), tracked (N,) bool) with the keyframes' poses ``kf_T_wc``;

@@ -209,6 +209,7 @@ class System:
             if not self.localization_only and not self._closed:
                 self._closed = True
                 self.mapper.finish(self.config.backend.final_global_ba)
+                self.tracking.refine_trajectory()
         finally:
             self._lookahead.close()
             self.dynamic_filter.close()

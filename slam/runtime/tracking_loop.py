@@ -22,6 +22,7 @@ from slam.core.frame import FeatureFrame, MapPoints
 from slam.core.geometry import invert, pose_distance
 from slam.core.timing import ModuleTimer
 from slam.runtime.frame_log import FrameLog
+from slam.runtime.frame_refinement import FrameMatches, MatchStore, refine_frames
 
 
 @dataclass
@@ -73,6 +74,7 @@ class TrackingLoop:
         self._map_view = _MapView(mapper, config.tracking.local_keyframes, config.tracking.covisible_per_keyframe)
         self._whole_map_view = _WholeMapView(mapper) if localization_only else None
         self.frames = FrameLog()
+        self._matches = MatchStore(config.tracking.refine_frames)   # for refine_trajectory
         self._last_keyframe_frame = -1
         self._reference_kf = -1
         self._rgb: Optional[np.ndarray] = None     # the frame's image, for the keyframe's point colours
@@ -180,9 +182,18 @@ class TrackingLoop:
         # Keyframes are smoothed too, with their tracking covariance: where the background is thin the
         # windows cannot fix them either (Bonn frames 446-448: keyframes 5-8 cm off after adjustment;
         # holding keyframes fixed in the smoother left them so, seeds 0-2 worst frame 6.6-7.9 cm).
+        if not is_keyframe and self._matches.capacity:   # a keyframe keeps its adjusted pose
+            self._matches.add(len(self.frames), FrameMatches.of(frame, result.landmark_of_keypoint))
         self.frames.add(frame.timestamp, self._reference_kf, T_kf_c, result.position_cov_w)
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids),
                            float(result.pose_sigma_t))
+
+    def refine_trajectory(self) -> int:
+        """The frames between keyframes solved again against the map as it is now (the end of a run, after
+        the final adjustment; slam/runtime/frame_refinement.py). Returns how many frames changed."""
+        lm = self.mapper.map.landmarks
+        return refine_frames(self.frames, self._matches, self.mapper.map.kf_T_wc, lm.xyz, lm.bad, self.camera,
+                             self.config.tracking)
 
     def _add_keyframe(self, frame: FeatureFrame, T_wc: np.ndarray, landmark_of_keypoint: np.ndarray) -> np.ndarray:
         """Insert the keyframe, look for a loop, then one graph update for both (one hand-over to the
