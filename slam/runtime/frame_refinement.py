@@ -23,13 +23,16 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import ItemsView
 
 import numpy as np
 
 from frontend.pose_optimizer import PoseObservations, optimize_pose
 from slam.core.config import TrackingConfig
 from slam.core.frame import FeatureFrame
+from slam.core.camera import PinholeCamera
 from slam.core.geometry import invert
+from slam.runtime.frame_log import FrameLog
 
 
 @dataclass(frozen=True)
@@ -66,17 +69,17 @@ class MatchStore:
         while len(self._matches) > self.capacity:
             self._matches.popitem(last=False)
 
-    def items(self):
+    def items(self) -> ItemsView[int, FrameMatches]:
         return self._matches.items()
 
     def clear(self) -> None:
         self._matches.clear()
 
 
-def refine_frames(frames, store: MatchStore, kf_T_wc: np.ndarray, landmark_xyz: np.ndarray,
-                  landmark_bad: np.ndarray, camera, cfg: TrackingConfig) -> int:
+def refine_frames(frames: FrameLog, store: MatchStore, kf_T_wc: np.ndarray, landmark_xyz: np.ndarray,
+                  landmark_bad: np.ndarray, camera: PinholeCamera, cfg: TrackingConfig) -> int:
     """Solve every stored frame again against the landmarks' final positions and put the result into
-    ``frames`` (a FrameLog: the pose relative to the same reference keyframe, and its covariance);
+    ``frames`` (the pose relative to the same reference keyframe, and its covariance);
     returns how many frames changed. The store is emptied."""
     changed = 0
     for position, matches in store.items():
