@@ -46,6 +46,12 @@ class LocalMapSource(Protocol):
         ...
 
 
+def pose_information(frame: FeatureFrame, kp: np.ndarray) -> np.ndarray:
+    """The weight of features ``kp`` in the frame's pose optimisation: their level's 1/sigma^2, times how
+    sure the front end is that they are static."""
+    return frame.inv_sigma2[kp] * (1.0 - frame.dynamic_prob[kp])
+
+
 @dataclass
 class TrackingResult:
     state: TrackingState
@@ -284,7 +290,7 @@ class Tracker:
     def _optimize(self, frame: FeatureFrame, T_cw: np.ndarray, corr: _Correspondences):
         """Pose-only optimisation; returns the pose and the inlier correspondences."""
         kp = corr.kp
-        information = frame.inv_sigma2[kp] * (1.0 - frame.dynamic_prob[kp])
+        information = pose_information(frame, kp)
         obs = PoseObservations(corr.xyz, frame.uv[kp], frame.u_right[kp], information)
         result = optimize_pose(T_cw, obs, self.camera, self.cfg.pose_iterations, self.cfg.pose_rounds,
                                self.cfg.chi2_mono, self.cfg.chi2_stereo, self._prior)

@@ -11,12 +11,12 @@ tracked (``FrameMatches``), are solved again with the final landmark positions b
 optimisation, started from the frame's final pose; its position covariance comes from the same solve, so
 the smoother (trajectory_smoother.py) weighs the new estimate. Keyframes keep their adjusted poses.
 
-Measured (2026-12-02, `dynslam run ... --set tracking.refine_frames=3000`): fr1/rpy-400 ATE 0.0233 ->
-0.0220 m, Bonn crowd-480 0.0102 -> 0.0103 (a /tmp probe of the same computation: three_close, scene seeds 0-4 4.2 / 2.7 / 5.0 / 4.5 / 5.7 -> 3.4 / 2.5 /
-3.6 / 2.3 / 4.6 mm). A re-solve that keeps fewer than ``tracking.min_tracked_inliers`` inliers, or fixes the
-position worse than ``tracking.max_pose_sigma_m`` (what tracking would call LOST), keeps the tracked pose.
-Off by default (``tracking.refine_frames`` 0: the ratio bars of issue 11, see its config field). Matches
-are kept for the newest ``tracking.refine_frames`` frames only (20 bytes a match, ~8 KB a frame:
+Measured (2026-12-02, `--set tracking.refine_frames=3000`): `dynslam run` fr1/rpy-400 ATE 0.0233 -> 0.0220 m,
+Bonn crowd-480 0.0102 -> 0.0103; `python tools/hard_scenes.py --repeats 3`: the path without people 2.8 ->
+2.0 mm, three_close 4.2 -> 3.5 mm (docs/design.md, "The frames between keyframes", has why it is off).
+A re-solve that keeps fewer than ``tracking.min_tracked_inliers`` inliers, or fixes the position worse than
+``tracking.max_pose_sigma_m`` (what tracking would call LOST), keeps the tracked pose.
+Matches are kept for the newest ``tracking.refine_frames`` frames only (20 bytes a match, ~8 KB a frame:
 24 MB at 3,000), so a long live run's memory stays bounded; older frames keep their tracked poses.
 """
 from __future__ import annotations
@@ -28,9 +28,10 @@ from typing import ItemsView
 import numpy as np
 
 from frontend.pose_optimizer import PoseObservations, optimize_pose
+from frontend.tracker import pose_information
+from slam.core.camera import PinholeCamera
 from slam.core.config import TrackingConfig
 from slam.core.frame import FeatureFrame
-from slam.core.camera import PinholeCamera
 from slam.core.geometry import invert
 from slam.runtime.frame_log import FrameLog
 
@@ -42,14 +43,14 @@ class FrameMatches:
     landmark_ids: np.ndarray   # (N,) int32
     uv: np.ndarray             # (N,2) float32 undistorted pixels
     u_right: np.ndarray        # (N,) float32 virtual stereo u, NaN without depth
-    information: np.ndarray    # (N,) float32 1/sigma^2 times (1 - dynamic probability)
+    information: np.ndarray    # (N,) float32, tracker.pose_information
 
     @classmethod
     def of(cls, frame: FeatureFrame, landmark_of_keypoint: np.ndarray) -> "FrameMatches":
         kp = np.flatnonzero(landmark_of_keypoint >= 0)
         return cls(landmark_of_keypoint[kp].astype(np.int32), frame.uv[kp].astype(np.float32),
                    frame.u_right[kp].astype(np.float32),
-                   (frame.inv_sigma2[kp] * (1.0 - frame.dynamic_prob[kp])).astype(np.float32))
+                   pose_information(frame, kp).astype(np.float32))
 
 
 class MatchStore:

@@ -179,11 +179,11 @@ class TrackingLoop:
         if is_keyframe:
             T_wc = self._add_keyframe(frame, T_wc, result.landmark_of_keypoint)
         T_kf_c = invert(self.mapper.map.kf_T_wc[self._reference_kf]) @ T_wc
+        if not is_keyframe and self._matches.capacity:   # a keyframe keeps its adjusted pose
+            self._matches.add(len(self.frames), FrameMatches.of(frame, result.landmark_of_keypoint))
         # Keyframes are smoothed too, with their tracking covariance: where the background is thin the
         # windows cannot fix them either (Bonn frames 446-448: keyframes 5-8 cm off after adjustment;
         # holding keyframes fixed in the smoother left them so, seeds 0-2 worst frame 6.6-7.9 cm).
-        if not is_keyframe and self._matches.capacity:   # a keyframe keeps its adjusted pose
-            self._matches.add(len(self.frames), FrameMatches.of(frame, result.landmark_of_keypoint))
         self.frames.add(frame.timestamp, self._reference_kf, T_kf_c, result.position_cov_w)
         return FrameOutput(frame.index, frame.timestamp, TrackingState.OK, T_wc, is_keyframe, len(frame), len(tracked_ids),
                            float(result.pose_sigma_t))
