@@ -180,3 +180,33 @@ def test_projective_candidates_are_the_window_around_the_projection():
     near_dist, _ = target.query(p, 1)                               # k = 1: the window's nearest
     with np.errstate(invalid="ignore"):
         np.testing.assert_array_equal(near_dist[:, 0], dist.min(axis=1))
+
+
+def _digest(out) -> str:
+    """sha256 of a cpr output's mask and scores."""
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(out.mask).tobytes() + np.asarray(out.info["scores"]).tobytes()).hexdigest()
+
+
+def test_compiled_kernels_load_from_the_cache_in_a_new_process():
+    """numba's on-disk cache is what every run after the first loads: two fresh processes (the second certainly
+    loads what the first compiled or loaded) give this process's masks and scores. The cache once crashed a
+    recursive kernel when loaded (a segfault, not an exception), which only a new process shows."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from frontend.dynamic.cpr import compile_kernels
+
+    code = ("from frontend.dynamic.cpr import compile_kernels; from tests.test_cpr_vectorised import _digest; "
+            "o = compile_kernels(); print(_digest(o), o.info['dynamic_clusters'])")
+    here = compile_kernels()
+    expected = (_digest(here), here.info["dynamic_clusters"])
+    for _ in range(2):
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                             cwd=Path(__file__).resolve().parents[1])
+        assert run.returncode == 0, run.stderr[-2000:]
+        digest, clusters = run.stdout.split()
+        assert (digest, int(clusters)) == expected
+    assert expected[1] >= 1                                   # the moving block is found

@@ -20,6 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from frontend.dynamic import cpr_kernels as kernels
 from slam.core.camera import PinholeCamera
 
 def _distort(camera: PinholeCamera, uv: np.ndarray) -> np.ndarray:
@@ -66,53 +67,42 @@ class ProjectiveGrid:
 
 
 class ProjectiveTarget:
-    """The reference's samples on its padded sampling grid; candidates by projection (see the module)."""
+    """The reference's samples on its padded sampling grid; candidates by projection (see the module). The
+    table and the association are ``cpr_kernels``' (``projective_table``, ``window_query``), which the
+    compiled ICP and scores read through ``kernel_args``."""
 
     def __init__(self, grid: ProjectiveGrid, sample_pix: np.ndarray, xyz: np.ndarray, intensity: np.ndarray):
         self.grid = grid
-        cells = grid.cells(sample_pix)
-        self.xyz = np.zeros((grid.size + 1, 3))
-        self.intensity = np.zeros(grid.size + 1)
-        self.xyz[cells], self.intensity[cells] = xyz, intensity
-        # per-axis copies with +inf in empty cells: a missing candidate's distance comes out inf by itself
-        self._cols = [np.full(grid.size + 1, np.inf) for _ in range(3)]
-        for a in range(3):
-            self._cols[a][cells] = xyz[:, a]
+        self.table = kernels.projective_table(grid.cells(sample_pix), np.ascontiguousarray(xyz, dtype=np.float64),
+                                              np.ascontiguousarray(intensity, dtype=np.float64), int(grid.size))
         self.n = len(xyz)
+
+    @property
+    def xyz(self) -> np.ndarray:
+        """(cells + 1, 3) sample points by table row, inf where a cell has none."""
+        return self.table[:, :3]
+
+    @property
+    def intensity(self) -> np.ndarray:
+        """(cells + 1,) sample intensities by table row, 0 where a cell has none."""
+        return self.table[:, 3]
 
     def __len__(self) -> int:
         return self.n
 
-    def query(self, p: np.ndarray, k: int, clamp: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Window candidates of every point (all of them; ``k`` = 1: only the nearest). A point behind the
-        camera has none; one projecting outside the image has none, or with ``clamp`` those of the nearest
-        border cell (what a nearest-neighbour search would find there, roughly)."""
+    def kernel_args(self) -> tuple:
+        """What the compiled association reads: the table, the camera, the lookup tables, the window offsets
+        and the sentinel cell."""
         g = self.grid
-        z = p[:, 2]
-        front = z > 1e-6
-        zs = np.where(front, z, 1.0)
-        u = np.rint(g.fx * p[:, 0] / zs + g.cx)
-        v = np.rint(g.fy * p[:, 1] / zs + g.cy)
-        inside = front & (u >= 0) & (u < g.width) & (v >= 0) & (v < g.height)
-        ui = np.clip(u, 0, g.width - 1).astype(np.int64)
-        vi = np.clip(v, 0, g.height - 1).astype(np.int64)
-        lin = vi * g.width + ui
-        ok = front if clamp else inside & g.seen[lin]
-        centre = np.where(ok, g.cell[lin], g.size)
-        idx = centre[:, None] + g.offsets[None, :]
-        idx[~ok] = g.size                                     # the sentinel cell: never valid
-        # (dx*dx + dy*dy) + dz*dz in place: the same operations in the same order as the plain
-        # expression (the same bits), without its eight temporary (N, window) arrays.
-        dist = np.take(self._cols[0], idx)
-        dist -= p[:, 0, None]
-        dist *= dist
-        part = np.empty_like(dist)
-        for a in (1, 2):
-            np.take(self._cols[a], idx, out=part)
-            part -= p[:, a, None]
-            part *= part
-            dist += part
-        np.sqrt(dist, out=dist)
+        return (self.table, float(g.fx), float(g.fy), float(g.cx), float(g.cy), int(g.width), int(g.height),
+                g.seen, g.cell, g.offsets, int(g.size))
+
+    def query(self, p: np.ndarray, k: int, clamp: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Window candidates of every point (all of them; ``k`` = 1: only the nearest): (distances (n, c), inf
+        where a cell has no sample; table rows (n, c)). A point behind the camera has none; one projecting
+        outside the image has none, or with ``clamp`` those of the nearest border cell (what a
+        nearest-neighbour search would find there, roughly)."""
+        dist, idx = kernels.window_query(np.ascontiguousarray(p, dtype=np.float64), *self.kernel_args(), bool(clamp))
         if k == 1:
             best = np.argmin(dist, axis=1)[:, None]
             return np.take_along_axis(dist, best, 1), np.take_along_axis(idx, best, 1)

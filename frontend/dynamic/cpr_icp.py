@@ -1,16 +1,17 @@
 """CPR-SLAM's registration half (seed 000, Sections 3.4-3.7): K-Means, sub-poses, correlation scores.
 
 Used by ``frontend.dynamic.cpr`` (which documents the method, the interpretation of the paper and the
-deviations); the clouds come from ``cpr_cloud``. Everything is whole-array numpy/scipy: one k-d tree query
-per ICP iteration for all sub-clouds together, per-sub-cloud sums with ``np.add.reduceat``, per-sub-cloud
-medians from one row-wise partition, batched 3x3 SVDs. Python loops run over the <= ``clusters`` sub-clouds only.
+deviations); the clouds come from ``cpr_cloud``. K-Means, and the sub-poses and scores against a projective
+target (the default association), are compiled kernels (``cpr_kernels``). Against the k-d tree (``association:
+kdtree``) everything is whole-array numpy/scipy: one tree query per ICP iteration for all sub-clouds together,
+per-sub-cloud sums with ``np.add.reduceat``, per-sub-cloud medians from one row-wise partition, batched 3x3 SVDs.
 """
 from __future__ import annotations
 
 import numpy as np
-from scipy.cluster import _vq            # kmeans2's own C kernels (vq, cluster means); see cluster()
-from scipy.spatial.distance import cdist
 
+from frontend.dynamic import cpr_kernels as kernels
+from frontend.dynamic.cpr_assoc import ProjectiveTarget
 from frontend.dynamic.cpr_cloud import Cloud
 from slam.core.dynamic_config import CprConfig
 
@@ -19,45 +20,20 @@ _SCALE_FLOOR_GEOM = 0.01
 _SCALE_FLOOR_INTENSITY = 0.01
 
 
-def _kpp(data: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-    """``scipy.cluster.vq._kpp`` (k-means++ seeding) with a running minimum of the squared distances: scipy
-    recomputes the distances to all i chosen centres for the i-th draw (O(k^2 n)); the minimum of the same
-    per-pair values is the same, so the same centres are drawn from the same random numbers."""
-    init = np.empty((k, data.shape[1]))
-    d2 = None
-    for i in range(k):
-        if i == 0:
-            idx = int(rng.integers(data.shape[0]))
-        else:
-            new = cdist(init[i - 1:i], data, metric="sqeuclidean")[0]
-            d2 = new if d2 is None else np.minimum(d2, new)
-            cumprobs = (d2 / d2.sum()).cumsum()
-            idx = int(np.searchsorted(cumprobs, rng.uniform()))
-        init[i] = data[idx]
-    return init
-
-
 def cluster(xyz: np.ndarray, k: int, seed: int, iterations: int = 10) -> np.ndarray:
     """K-Means labels (k-means++, fixed seed); deterministic for the same input.
 
     ``scipy.cluster.vq.kmeans2(xyz, k, iter=iterations, minit="++", seed=default_rng(seed))`` bit for bit
-    (tests/test_cpr_vectorised.py), with its k-means++ seeding in O(k n) and without its per-call input
-    checks; Lloyd iterations stop early at a fixed point (same labels twice: nothing can change after)."""
+    (tests/test_cpr_vectorised.py), compiled (``cpr_kernels.kmeans_labels``): the generator's draws are taken
+    here in kmeans2's order (they do not depend on the data), the seeding and the Lloyd iterations there."""
     n = len(xyz)
     if n <= k:
         return np.arange(n)
-    data = np.ascontiguousarray(xyz, dtype=np.float64)
-    code = _kpp(data, k, np.random.default_rng(seed))
-    label = None
-    for _ in range(iterations):
-        new_label = _vq.vq(data, code)[0]
-        if label is not None and np.array_equal(new_label, label):
-            break
-        label = new_label
-        new_code, has_members = _vq.update_cluster_means(data, label, k)
-        new_code[~has_members] = code[~has_members]     # kmeans2's missing="warn": an empty cluster stays put
-        code = new_code
-    return label
+    rng = np.random.default_rng(seed)
+    first = int(rng.integers(n))
+    uniforms = np.array([rng.uniform() for _ in range(k - 1)])
+    return kernels.kmeans_labels(np.ascontiguousarray(xyz, dtype=np.float64), int(k), first, uniforms,
+                                 int(iterations))
 
 
 # --- robust statistics -------------------------------------------------------------------------------------
@@ -226,10 +202,16 @@ def sub_poses(src: np.ndarray, src_i: np.ndarray, labels: np.ndarray, k: int, re
     valid = np.diff(starts_all) >= _MIN_CLUSTER_POINTS
     pick = order[_even_subsample(starts_all, max(_MIN_CLUSTER_POINTS, int(cfg.icp_max_points)))]
     lab, p0, i0 = labels[pick], src[pick], src_i[pick]
-    poses = np.tile(init, (k, 1, 1))
     nu = cfg.student_nu
     n_cand = int(min(cfg.candidates, len(ref)))
     n_int = min(int(cfg.icp_intensity_iterations), int(cfg.icp_iterations))
+    if isinstance(ref, ProjectiveTarget):
+        poses = kernels.sub_poses_projective(
+            np.ascontiguousarray(p0), np.ascontiguousarray(i0), _segments(lab, k), valid,
+            np.ascontiguousarray(init, dtype=np.float64), *ref.kernel_args(), float(nu), n_int,
+            int(cfg.icp_iterations), n_cand > 1, _SCALE_FLOOR_GEOM, _SCALE_FLOOR_INTENSITY)
+        return poses, valid
+    poses = np.tile(init, (k, 1, 1))
     for intensity_stage, iters in ((True, n_int), (False, int(cfg.icp_iterations) - n_int)):
         active = valid.copy()
         for _ in range(iters):
@@ -263,6 +245,10 @@ def correlation_scores(src: np.ndarray, src_i: np.ndarray, poses: np.ndarray, re
     m = int(cfg.score_points)
     pick = np.arange(n) if (m <= 0 or n <= m) else (np.arange(m) * n) // m
     s, si = src[pick], src_i[pick]
+    if isinstance(ref, ProjectiveTarget):
+        return kernels.correlation_scores_projective(
+            np.ascontiguousarray(s), np.ascontiguousarray(si), np.ascontiguousarray(poses, dtype=np.float64),
+            *ref.kernel_args(), float(cfg.score_max_distance), int(min(max(1, cfg.score_candidates), len(ref))) == 1)
     k = len(poses)
     rot = np.ascontiguousarray(poses[:, :3, :3])         # einsum runs ~2x faster on a contiguous operand
     moved = np.einsum("kab,nb->kna", rot, s) + poses[:, None, :3, 3]

@@ -1,0 +1,695 @@
+"""Compiled kernels of the cpr method (numba): the cloud (voxel filter, MLS), the sub-pose ICP and the
+correlation scores with projective association.
+
+Why compiled: the whole-array numpy formulation (``cpr_cloud``, ``cpr_icp``) spent most of its ~24 ms per
+Bonn frame in the overhead of some hundred array operations per ICP iteration on ~1,500 points, not in
+arithmetic; issue 10 asks for <= 8 ms. The kernels are plain loops over points that do the same arithmetic
+in the same order where it mattered for the masks (per-voxel and per-point sums in input order, as
+``np.bincount`` adds them; the same closed-form eigenvector; the same Student-t weights, robust scales and
+Kabsch step). They run with the GIL released (``nogil``), so cpr's thread (``DynamicRejector``'s prepare)
+no longer competes with the tracking thread for the interpreter.
+
+``cache=True``: compiled once per machine into ``__pycache__`` beside this file (or numba's user-wide cache
+where that is not writable), a few seconds on the first run, ~0.1 s to load after. No ``fastmath``, no
+``parallel``: the same input gives the same bits, whatever the threads.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_JIT = {"nogil": True, "cache": True}
+MAX_LOOKUP = 8_000_000          # cells of a dense index table before falling back to sorting the keys
+_TWO_PI_3 = 2.0 * np.pi / 3.0
+
+
+# --- the cloud ---------------------------------------------------------------------------------------------
+
+
+@numba.njit(**_JIT)
+def _cell_keys(x, y, z, voxel, margin):
+    """Integer cell of every point, flattened row-major over the occupied box grown by ``margin`` cells per
+    side (neighbour offsets never wrap). Returns (flat keys, span per axis)."""
+    n = len(x)
+    kx = np.empty(n, np.int64)
+    ky = np.empty(n, np.int64)
+    kz = np.empty(n, np.int64)
+    for i in range(n):
+        kx[i] = np.int64(np.floor(x[i] / voxel))
+        ky[i] = np.int64(np.floor(y[i] / voxel))
+        kz[i] = np.int64(np.floor(z[i] / voxel))
+    lo = np.array([kx.min() - margin, ky.min() - margin, kz.min() - margin])
+    span = np.array([kx.max() - lo[0] + 1 + margin, ky.max() - lo[1] + 1 + margin, kz.max() - lo[2] + 1 + margin])
+    flat = np.empty(n, np.int64)
+    for i in range(n):
+        flat[i] = ((kx[i] - lo[0]) * span[1] + (ky[i] - lo[1])) * span[2] + (kz[i] - lo[2])
+    return flat, span
+
+
+@numba.njit(**_JIT)
+def _cell_table(scratch, volume):
+    """A cell -> index table of ``volume`` cells, all -1: ``scratch`` when it is large enough (its users put
+    back every -1 they overwrite, so it never needs clearing: a 1.5 M-cell box cost ~1 ms a frame to fill),
+    else a new one."""
+    if volume <= len(scratch):
+        return scratch
+    return np.full(volume, -1, np.int32)
+
+
+@numba.njit(**_JIT)
+def voxel_filter_cols(x, y, z, intensity, voxel, scratch):
+    """Centroid and mean intensity per occupied voxel, voxels numbered in key order (``np.unique``'s), sums in
+    input order (``np.bincount``'s). ``scratch``: an int32 table of -1 (``_cell_table``). Returns (cx, cy, cz,
+    mean intensity, voxel of every input point, cells the box needed)."""
+    n = len(x)
+    flat, span = _cell_keys(x, y, z, voxel, 0)
+    volume = span[0] * span[1] * span[2]
+    inverse = np.empty(n, np.int64)
+    if volume <= MAX_LOOKUP:
+        table = _cell_table(scratch, volume)
+        occupied = np.empty(n, np.int64)
+        m = 0
+        for i in range(n):                         # the occupied cells, once each
+            if table[flat[i]] == -1:
+                table[flat[i]] = 0
+                occupied[m] = flat[i]
+                m += 1
+        occupied = np.sort(occupied[:m])           # numbered in key order
+        for v in range(m):
+            table[occupied[v]] = v
+        for i in range(n):
+            inverse[i] = table[flat[i]]
+        for v in range(m):
+            table[occupied[v]] = -1
+    else:
+        order = np.argsort(flat, kind="mergesort")
+        m = 0
+        for a in range(n):
+            if a > 0 and flat[order[a]] != flat[order[a - 1]]:
+                m += 1
+            inverse[order[a]] = m
+        m += 1
+    counts = np.zeros(m)
+    cx = np.zeros(m)
+    cy = np.zeros(m)
+    cz = np.zeros(m)
+    ci = np.zeros(m)
+    for i in range(n):
+        v = inverse[i]
+        counts[v] += 1.0
+        cx[v] += x[i]
+        cy[v] += y[i]
+        cz[v] += z[i]
+        ci[v] += intensity[i]
+    for v in range(m):
+        cx[v] /= counts[v]
+        cy[v] /= counts[v]
+        cz[v] /= counts[v]
+        ci[v] /= counts[v]
+    return cx, cy, cz, ci, inverse, volume
+
+
+@numba.njit(**_JIT)
+def _smallest_eigvec(a00, a11, a22, a01, a02, a12):
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 (trigonometric eigenvalue, then the
+    largest cross product of two rows of A - lambda I). Returns (vx, vy, vz, ok)."""
+    q = (a00 + a11 + a22) / 3.0
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    p = np.sqrt(max(p2, 0.0) / 6.0)
+    if not p > 1e-12:
+        return 0.0, 0.0, 0.0, False
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    det = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
+    phi = np.arccos(min(max(det / 2.0, -1.0), 1.0)) / 3.0
+    lam = q + 2.0 * p * np.cos(phi + _TWO_PI_3)
+    r0x, r0y, r0z = a00 - lam, a01, a02
+    r1x, r1y, r1z = a01, a11 - lam, a12
+    r2x, r2y, r2z = a02, a12, a22 - lam
+    best_n, bx, by, bz = -1.0, 0.0, 0.0, 0.0
+    for pair in range(3):                       # r0 x r1, r0 x r2, r1 x r2: the first largest wins
+        if pair == 0:
+            ux, uy, uz, vx, vy, vz = r0x, r0y, r0z, r1x, r1y, r1z
+        elif pair == 1:
+            ux, uy, uz, vx, vy, vz = r0x, r0y, r0z, r2x, r2y, r2z
+        else:
+            ux, uy, uz, vx, vy, vz = r1x, r1y, r1z, r2x, r2y, r2z
+        cx = uy * vz - uz * vy
+        cy = uz * vx - ux * vz
+        cz = ux * vy - uy * vx
+        nrm = np.sqrt((cx * cx + cy * cy) + cz * cz)
+        if nrm > best_n:
+            best_n, bx, by, bz = nrm, cx, cy, cz
+    if not best_n > 1e-30:
+        return 0.0, 0.0, 0.0, False
+    return bx / best_n, by / best_n, bz / best_n, True
+
+
+@numba.njit(**_JIT)
+def smallest_eigvecs(cov):
+    """``_smallest_eigvec`` of every symmetric 3x3 in ``cov`` (n,3,3): (vectors (n,3), ok (n,))."""
+    n = len(cov)
+    vec = np.zeros((n, 3))
+    ok = np.zeros(n, np.bool_)
+    for i in range(n):
+        c = cov[i]
+        vec[i, 0], vec[i, 1], vec[i, 2], ok[i] = _smallest_eigvec(c[0, 0], c[1, 1], c[2, 2], c[0, 1], c[0, 2],
+                                                                  c[1, 2])
+    return vec, ok
+
+
+@numba.njit(**_JIT)
+def mls_cols(x, y, z, radius, voxel, scratch):
+    """First-order MLS on a voxelised cloud (see ``cpr_cloud.mls_smooth``): every point projected on the plane
+    fitted with Gaussian weights exp(-d^2/r^2), d <= r, to the points of the 3x3x3 cells around its own.
+    ``scratch``: an int32 table of -1 (``_cell_table``). Returns (smoothed (n,3), keep (n,), unit normals (n,3),
+    0 where no plane, cells the box needed)."""
+    n = len(x)
+    flat, span = _cell_keys(x, y, z, voxel, 1)
+    volume = span[0] * span[1] * span[2]
+    offs = np.empty(27, np.int64)
+    o = 0
+    for a in range(-1, 2):
+        for b in range(-1, 2):
+            for c in range(-1, 2):
+                offs[o] = (a * span[1] + b) * span[2] + c
+                o += 1
+    dense = volume <= MAX_LOOKUP
+    if dense:
+        table = _cell_table(scratch, volume)
+        for i in range(n):
+            table[flat[i]] = i
+        order = np.zeros(1, np.int64)
+        sorted_flat = np.zeros(1, np.int64)
+    else:
+        table = np.zeros(1, np.int32)
+        order = np.argsort(flat, kind="mergesort")
+        sorted_flat = flat[order]
+    r2 = radius * radius
+    out = np.empty((n, 3))
+    normals = np.zeros((n, 3))
+    keep = np.zeros(n, np.bool_)
+    for i in range(n):
+        xi, yi, zi = x[i], y[i], z[i]
+        sw = swx = swy = swz = 0.0
+        sxx = syy = szz = sxy = sxz = syz = 0.0
+        close = 0
+        for o in range(27):
+            cell = flat[i] + offs[o]
+            if dense:
+                j = table[cell]
+            else:
+                pos = min(np.searchsorted(sorted_flat, cell), n - 1)
+                j = order[pos] if sorted_flat[pos] == cell else -1
+            if j < 0:
+                continue
+            dx, dy, dz = x[j] - xi, y[j] - yi, z[j] - zi
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 > r2:
+                continue
+            close += 1
+            w = np.exp(-d2 / r2)
+            wx, wy, wz = w * dx, w * dy, w * dz
+            sw += w
+            swx += wx
+            swy += wy
+            swz += wz
+            sxx += wx * dx
+            syy += wy * dy
+            szz += wz * dz
+            sxy += wx * dy
+            sxz += wx * dz
+            syz += wy * dz
+        out[i, 0], out[i, 1], out[i, 2] = xi, yi, zi
+        if close < 3:
+            continue
+        sw = max(sw, 1e-12)
+        mx, my, mz = swx / sw, swy / sw, swz / sw
+        vx, vy, vz, ok = _smallest_eigvec(sxx / sw - mx * mx, syy / sw - my * my, szz / sw - mz * mz,
+                                          sxy / sw - mx * my, sxz / sw - mx * mz, syz / sw - my * mz)
+        if not ok:
+            continue
+        # the plane passes through the weighted centre xi + m; project xi onto it
+        offset = (xi - (xi + mx)) * vx + (yi - (yi + my)) * vy + (zi - (zi + mz)) * vz
+        out[i, 0], out[i, 1], out[i, 2] = xi - offset * vx, yi - offset * vy, zi - offset * vz
+        normals[i, 0], normals[i, 1], normals[i, 2] = vx, vy, vz
+        keep[i] = True
+    if dense:
+        for i in range(n):
+            table[flat[i]] = -1
+    return out, keep, normals, volume
+
+
+@numba.njit(**_JIT)
+def build_cloud_arrays(depth, gray, pix, rays, min_depth, max_depth, voxel, radius, scratch):
+    """Section 3.3 in one pass: the depth samples in (min_depth, max_depth], their voxel filter, MLS, and
+    the dense registration target (every kept sample projected on its voxel's plane). ``scratch``: an int32
+    table of -1 (``_cell_table``).
+
+    Returns (xyz (M,3), intensity (M,), normals (M,3), sample_pix (S,2), sample_point (S,) index into xyz or
+    -1, dense_xyz (D,3), dense_intensity (D,), the most cells a box needed)."""
+    s_all = len(pix)
+    x = np.empty(s_all)
+    y = np.empty(s_all)
+    z = np.empty(s_all)
+    inten = np.empty(s_all)
+    sample = np.empty(s_all, np.int64)
+    n = 0
+    for s in range(s_all):
+        r, c = pix[s, 0], pix[s, 1]
+        d = np.float64(depth[r, c])
+        if d > min_depth and d <= max_depth and np.isfinite(d):
+            x[n], y[n], z[n] = rays[s, 0] * d, rays[s, 1] * d, d
+            inten[n] = np.float64(gray[r, c]) / 255.0
+            sample[n] = s
+            n += 1
+    x, y, z, inten, sample = x[:n], y[:n], z[:n], inten[:n], sample[:n]
+    sample_pix = np.empty((n, 2), pix.dtype)
+    for i in range(n):
+        sample_pix[i, 0], sample_pix[i, 1] = pix[sample[i], 0], pix[sample[i], 1]
+    if n == 0:
+        return (np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), sample_pix, np.zeros(0, np.int64),
+                np.zeros((0, 3)), np.zeros(0), 0)
+    cx, cy, cz, ci, inverse, volume = voxel_filter_cols(x, y, z, inten, voxel, scratch)
+    m = len(cx)
+    if m < 3:
+        return (np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), sample_pix, np.full(n, -1, np.int64),
+                np.zeros((0, 3)), np.zeros(0), volume)
+    smooth, keep, normals, mls_volume = mls_cols(cx, cy, cz, radius, voxel, scratch)
+    new_index = np.full(m, -1, np.int64)
+    kept = 0
+    for v in range(m):
+        if keep[v]:
+            new_index[v] = kept
+            kept += 1
+    xyz = np.empty((kept, 3))
+    out_i = np.empty(kept)
+    out_n = np.empty((kept, 3))
+    for v in range(m):
+        t = new_index[v]
+        if t >= 0:
+            xyz[t] = smooth[v]
+            out_i[t] = ci[v]
+            out_n[t] = normals[v]
+    sample_point = np.empty(n, np.int64)
+    dense_n = 0
+    for i in range(n):
+        sample_point[i] = new_index[inverse[i]]
+        if sample_point[i] >= 0:
+            dense_n += 1
+    dense = np.empty((dense_n, 3))
+    dense_i = np.empty(dense_n)
+    a = 0
+    for i in range(n):
+        v = inverse[i]
+        if new_index[v] < 0:
+            continue
+        nx, ny, nz = normals[v, 0], normals[v, 1], normals[v, 2]
+        off = (x[i] - smooth[v, 0]) * nx + (y[i] - smooth[v, 1]) * ny + (z[i] - smooth[v, 2]) * nz
+        dense[a, 0], dense[a, 1], dense[a, 2] = x[i] - off * nx, y[i] - off * ny, z[i] - off * nz
+        dense_i[a] = inten[i]
+        a += 1
+    return xyz, out_i, out_n, sample_pix, sample_point, dense, dense_i, max(volume, mls_volume)
+
+
+# --- K-Means ------------------------------------------------------------------------------------------------
+
+
+@numba.njit(**_JIT)
+def _block_sum(a, lo, n):
+    """numpy's pairwise-sum leaf (n <= 128): 8 accumulators, combined as a tree, then the rest in order."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@numba.njit(**_JIT)
+def _pairwise_sum(a):
+    """``a.sum()`` as numpy adds a contiguous float64 array: halves (the first a multiple of 8) until a part
+    has <= 128 values, each part by ``_block_sum``, the halves' sums added back up the tree. k-means++ draws
+    from cumulative probabilities divided by this sum, so the same draws need the same bits. Iterative (an
+    explicit stack): numba's on-disk cache crashed on the recursive version (a segfault when loaded)."""
+    span_lo = np.empty(64, np.int64)
+    span_n = np.empty(64, np.int64)
+    stage = np.empty(64, np.int64)
+    values = np.empty(64)
+    top, n_values = 0, 0
+    span_lo[0], span_n[0], stage[0] = 0, len(a), 0
+    while top >= 0:
+        lo, n = span_lo[top], span_n[top]
+        if n <= 128:
+            values[n_values] = _block_sum(a, lo, n)
+            n_values += 1
+            top -= 1
+            continue
+        half = n // 2
+        half -= half % 8
+        if stage[top] == 0:                  # the first half next
+            stage[top] = 1
+            top += 1
+            span_lo[top], span_n[top], stage[top] = lo, half, 0
+        elif stage[top] == 1:                # then the second
+            stage[top] = 2
+            top += 1
+            span_lo[top], span_n[top], stage[top] = lo + half, n - half, 0
+        else:                                # both done: their sum
+            n_values -= 1
+            values[n_values - 1] = values[n_values - 1] + values[n_values]
+            top -= 1
+    return values[0]
+
+
+@numba.njit(**_JIT)
+def _sq_dist(data, t, c0, c1, c2):
+    d0, d1, d2 = data[t, 0] - c0, data[t, 1] - c1, data[t, 2] - c2
+    return (d0 * d0 + d1 * d1) + d2 * d2
+
+
+@numba.njit(**_JIT)
+def kmeans_labels(data, k, first, uniforms, iterations):
+    """``scipy.cluster.vq.kmeans2(data, k, iter=iterations, minit="++")`` labels for (n, 3) ``data`` with the
+    random draws given (``first`` = the generator's ``integers(n)``, then ``uniforms`` = its k - 1
+    ``uniform()`` draws): k-means++ seeding with a running minimum of the squared distances, then Lloyd
+    iterations (nearest code, first on ties; an empty cluster keeps its code), stopping early at a fixed
+    point (the same labels twice: nothing can change after). The sums and distances add in scipy's order."""
+    n = len(data)
+    code = np.empty((k, 3))
+    code[0] = data[first]
+    d2 = np.empty(n)
+    probs = np.empty(n)
+    for i in range(1, k):
+        c0, c1, c2 = code[i - 1, 0], code[i - 1, 1], code[i - 1, 2]
+        for t in range(n):
+            new = _sq_dist(data, t, c0, c1, c2)
+            d2[t] = new if i == 1 else min(d2[t], new)
+        total = _pairwise_sum(d2)
+        acc = 0.0
+        idx = n - 1
+        found = False
+        for t in range(n):                     # searchsorted(cumsum(d2 / total), u), side="left"
+            acc += d2[t] / total
+            probs[t] = acc
+            if not found and acc >= uniforms[i - 1]:
+                idx, found = t, True
+        code[i] = data[idx]
+    label = np.full(n, -1, np.int64)
+    new_label = np.empty(n, np.int64)
+    for _ in range(iterations):
+        same = True
+        for t in range(n):
+            best, best_d = 0, np.inf
+            for j in range(k):
+                d = _sq_dist(data, t, code[j, 0], code[j, 1], code[j, 2])
+                if d < best_d:
+                    best, best_d = j, d
+            new_label[t] = best
+            same &= best == label[t]
+        if same:
+            break
+        label[:] = new_label
+        sums = np.zeros((k, 3))
+        counts = np.zeros(k, np.int64)
+        for t in range(n):
+            j = label[t]
+            sums[j, 0] += data[t, 0]
+            sums[j, 1] += data[t, 1]
+            sums[j, 2] += data[t, 2]
+            counts[j] += 1
+        for j in range(k):
+            if counts[j] > 0:
+                for e in range(3):
+                    code[j, e] = sums[j, e] / counts[j]
+    return label
+
+
+# --- projective association --------------------------------------------------------------------------------
+
+
+@numba.njit(**_JIT)
+def _window_centre(px, py, pz, fx, fy, cx, cy, width, height, seen, cell, sentinel, clamp):
+    """Padded grid cell whose window holds the candidates of a point in the reference camera (``sentinel``:
+    none). ``cpr_assoc.ProjectiveTarget.query`` for one point."""
+    if not pz > 1e-6:
+        return sentinel
+    u = np.rint(fx * px / pz + cx)
+    v = np.rint(fy * py / pz + cy)
+    inside = u >= 0 and u < width and v >= 0 and v < height
+    ui = np.int64(min(max(u, 0.0), width - 1))
+    vi = np.int64(min(max(v, 0.0), height - 1))
+    lin = vi * width + ui
+    if not clamp and not (inside and seen[lin]):
+        return sentinel
+    return cell[lin]
+
+
+@numba.njit(**_JIT)
+def projective_table(cells, xyz, intensity, size):
+    """The reference samples on the padded sampling grid, one row (x, y, z, intensity) per cell plus the
+    sentinel row: x, y, z = inf where a cell has no sample (a missing candidate's distance comes out inf by
+    itself), intensity 0. One row per candidate keeps a window's reads on a few cache lines."""
+    table = np.empty((size + 1, 4))
+    for g in range(size + 1):
+        table[g, 0], table[g, 1], table[g, 2], table[g, 3] = np.inf, np.inf, np.inf, 0.0
+    for t in range(len(cells)):
+        g = cells[t]
+        table[g, 0], table[g, 1], table[g, 2], table[g, 3] = xyz[t, 0], xyz[t, 1], xyz[t, 2], intensity[t]
+    return table
+
+
+@numba.njit(**_JIT)
+def window_query(p, table, fx, fy, cx, cy, width, height, seen, cell, offsets, sentinel, clamp):
+    """Every point's window candidates: (distances (n, c), inf where no sample; table rows (n, c))."""
+    n, c = len(p), len(offsets)
+    dist = np.empty((n, c))
+    rows = np.empty((n, c), np.int64)
+    for t in range(n):
+        centre = _window_centre(p[t, 0], p[t, 1], p[t, 2], fx, fy, cx, cy, width, height, seen, cell, sentinel,
+                                clamp)
+        for o in range(c):
+            g = sentinel if centre == sentinel else centre + offsets[o]
+            rows[t, o] = g
+            dx, dy, dz = table[g, 0] - p[t, 0], table[g, 1] - p[t, 1], table[g, 2] - p[t, 2]
+            dist[t, o] = np.sqrt((dx * dx + dy * dy) + dz * dz)
+    return dist, rows
+
+
+@numba.njit(**_JIT)
+def _t_weight(r, scale, nu):
+    q = r / scale
+    return (nu + 1.0) / (nu + q * q)
+
+
+@numba.njit(**_JIT)
+def _robust_scale(values, floor):
+    """1.4826 * median absolute deviation from the median (Eqs. 8-9), at least ``floor``."""
+    med = np.median(values)
+    return max(1.4826 * np.median(np.abs(values - med)), floor)
+
+
+@numba.njit(**_JIT)
+def _kabsch_step(sums, ws):
+    """Weighted rigid transform from the sums of one sub-cloud (sum w p, sum w q, sum w p q^T): (4,4)."""
+    out = np.eye(4)
+    sp = sums[0:3] / ws
+    sq = sums[3:6] / ws
+    h = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            h[a, b] = sums[6 + 3 * a + b] / ws - sp[a] * sq[b]
+    u, _, vt = np.linalg.svd(h)
+    rot = vt.T @ u.T
+    if np.linalg.det(rot) < 0:
+        fix = np.eye(3)
+        fix[2, 2] = -1.0
+        rot = vt.T @ fix @ u.T
+    out[:3, :3] = rot
+    out[:3, 3] = sq - rot @ sp
+    return out
+
+
+@numba.njit(**_JIT)
+def sub_poses_projective(p0, i0, starts, valid, init, table, fx, fy, cx, cy, width,
+                         height, seen, cell, offsets, sentinel, nu, intensity_iterations, iterations,
+                         window_candidates, floor_geom, floor_intensity):
+    """Sub-pose ICP of ``cpr_icp.sub_poses`` with projective association. ``p0``/``i0`` are the registered
+    points sorted by sub-cloud (segments [starts[j], starts[j+1])). Intensity-assisted iterations first (each
+    point's window candidate with the largest product of Student-t weights of distance and intensity, the
+    scales over all candidate residuals of its sub-cloud), then plain robust ICP (the window's nearest,
+    geometric weight). A sub-cloud stops when a step moves it < 0.1 mm and 0.01 deg."""
+    k = len(starts) - 1
+    poses = np.empty((k, 4, 4))
+    for j in range(k):
+        poses[j] = init
+    c = len(offsets)
+    n_max = 0
+    for j in range(k):
+        n_max = max(n_max, starts[j + 1] - starts[j])
+    dist = np.empty((n_max, c))
+    r_int = np.empty((n_max, c))
+    cand = np.empty((n_max, c), np.int64)
+    buf_g = np.empty(n_max * c)
+    buf_i = np.empty(n_max * c)
+    p = np.empty((n_max, 3))
+    q = np.empty((n_max, 3))
+    w = np.empty(n_max)
+    min_angle = np.deg2rad(0.01)
+    for stage in range(2):
+        intensity = stage == 0 and window_candidates
+        iters = intensity_iterations if stage == 0 else iterations - intensity_iterations
+        for j in range(k):
+            if not valid[j]:
+                continue
+            pose = poses[j]
+            for _ in range(iters):
+                a, b = starts[j], starts[j + 1]
+                n = b - a
+                count = 0
+                for t in range(n):                    # move, project, gather the window
+                    s = a + t
+                    for e in range(3):
+                        p[t, e] = (pose[e, 0] * p0[s, 0] + pose[e, 1] * p0[s, 1] + pose[e, 2] * p0[s, 2]
+                                   + pose[e, 3])
+                    centre = _window_centre(p[t, 0], p[t, 1], p[t, 2], fx, fy, cx, cy, width, height, seen,
+                                            cell, sentinel, False)
+                    for o in range(c):
+                        g = sentinel if centre == sentinel else centre + offsets[o]
+                        cand[t, o] = g
+                        dx, dy, dz = table[g, 0] - p[t, 0], table[g, 1] - p[t, 1], table[g, 2] - p[t, 2]
+                        d = np.sqrt((dx * dx + dy * dy) + dz * dz)
+                        dist[t, o] = d
+                        r_int[t, o] = abs(i0[s] - table[g, 3])
+                        if intensity and np.isfinite(d):
+                            buf_g[count] = d
+                            buf_i[count] = r_int[t, o]
+                            count += 1
+                if intensity:
+                    if count == 0:
+                        break
+                    sg = _robust_scale(buf_g[:count], floor_geom)
+                    si = _robust_scale(buf_i[:count], floor_intensity)
+                    for t in range(n):
+                        # the largest product of the two weights (nu+1)^2 / (den_g den_i) is the smallest
+                        # product of their denominators: one division per point instead of two per candidate
+                        best, best_den = -1, np.inf
+                        for o in range(c):
+                            if np.isfinite(dist[t, o]):
+                                qg, qi = dist[t, o] / sg, r_int[t, o] / si
+                                den = (nu + qg * qg) * (nu + qi * qi)
+                                if den < best_den:
+                                    best, best_den = o, den
+                        if best < 0:
+                            w[t] = 0.0
+                            continue
+                        g = cand[t, best]
+                        q[t, 0], q[t, 1], q[t, 2] = table[g, 0], table[g, 1], table[g, 2]
+                        w[t] = _t_weight(dist[t, best], sg, nu) * _t_weight(r_int[t, best], si, nu)
+                else:
+                    m = 0
+                    for t in range(n):                # the nearest candidate of every point
+                        best, best_d = 0, np.inf
+                        for o in range(c):
+                            if dist[t, o] < best_d:
+                                best, best_d = o, dist[t, o]
+                        g = cand[t, best]
+                        q[t, 0], q[t, 1], q[t, 2] = table[g, 0], table[g, 1], table[g, 2]
+                        w[t] = best_d
+                        if np.isfinite(best_d):
+                            buf_g[m] = best_d
+                            m += 1
+                    if m == 0:
+                        break
+                    sg = _robust_scale(buf_g[:m], floor_geom)
+                    for t in range(n):
+                        w[t] = _t_weight(w[t], sg, nu) if np.isfinite(w[t]) else 0.0
+                sums = np.zeros(15)
+                ws = 0.0
+                for t in range(n):
+                    wt = w[t]
+                    if wt == 0.0:
+                        continue
+                    ws += wt
+                    for e in range(3):
+                        sums[e] += wt * p[t, e]
+                        sums[3 + e] += wt * q[t, e]
+                    for e in range(3):
+                        we = wt * p[t, e]
+                        for f in range(3):
+                            sums[6 + 3 * e + f] += we * q[t, f]
+                if not ws > 1e-9:
+                    break
+                delta = _kabsch_step(sums, ws)
+                pose = delta @ pose
+                moved = np.sqrt(delta[0, 3] ** 2 + delta[1, 3] ** 2 + delta[2, 3] ** 2)
+                cos_a = min(max((delta[0, 0] + delta[1, 1] + delta[2, 2] - 1.0) / 2.0, -1.0), 1.0)
+                if moved < 1e-4 and np.arccos(cos_a) < min_angle:
+                    break
+            poses[j] = pose
+    return poses
+
+
+@numba.njit(**_JIT)
+def correlation_scores_projective(src, src_i, poses, table, fx, fy, cx, cy, width,
+                                  height, seen, cell, offsets, sentinel, cap, nearest_only):
+    """R(j) of Eq. 12 for every pose with projective candidates (``clamp``: a point projecting outside the
+    image takes the border cell's window): the mean over the points of the smallest distance + |intensity
+    difference| among the window's candidates (``nearest_only``: of the nearest one). With ``cap`` > 0 a
+    distance counts at most ``cap`` and a point without any candidate costs ``cap``; with 0 such a point is
+    left out of its pose's mean."""
+    k = len(poses)
+    n = len(src)
+    out = np.empty(k)
+    c = len(offsets)
+    for j in range(k):
+        pose = poses[j]
+        total = 0.0
+        used = 0
+        for t in range(n):
+            px = pose[0, 0] * src[t, 0] + pose[0, 1] * src[t, 1] + pose[0, 2] * src[t, 2] + pose[0, 3]
+            py = pose[1, 0] * src[t, 0] + pose[1, 1] * src[t, 1] + pose[1, 2] * src[t, 2] + pose[1, 3]
+            pz = pose[2, 0] * src[t, 0] + pose[2, 1] * src[t, 1] + pose[2, 2] * src[t, 2] + pose[2, 3]
+            centre = _window_centre(px, py, pz, fx, fy, cx, cy, width, height, seen, cell, sentinel, True)
+            best = np.inf
+            nearest = np.inf
+            for o in range(c):
+                g = sentinel if centre == sentinel else centre + offsets[o]
+                dx, dy, dz = table[g, 0] - px, table[g, 1] - py, table[g, 2] - pz
+                d = np.sqrt((dx * dx + dy * dy) + dz * dz)
+                if nearest_only:                  # the window's nearest by distance, then its cost
+                    if not d < nearest:
+                        continue
+                    nearest = d
+                    best = np.inf
+                if cap > 0 and d > cap and np.isfinite(d):
+                    d = cap
+                cost = d + abs(src_i[t] - table[g, 3])
+                if cost < best:
+                    best = cost
+            if np.isfinite(best):
+                total += best
+                used += 1
+            elif cap > 0:
+                total += cap
+                used += 1
+        out[j] = total / max(used, 1)
+    return out
