@@ -23,12 +23,14 @@ def test_a_revision_rewrites_the_keyframes_mask_files(tmp_path):
     frame = SimpleNamespace(index=7, depth=np.zeros(SHAPE, np.float32))
     system = SimpleNamespace(revised_keyframe_masks=(), last_dynamic_mask=full, last_still_people_mask=None)
     artifacts.on_frame(SimpleNamespace(is_keyframe=True), frame, system)
+    artifacts.drain()                                        # written by the writer thread
     mask_path = tmp_path / MASK_DIR / f"{7:06d}.png"
     still_path = tmp_path / MASK_DIR / f"{7:06d}{STILL_SUFFIX}.png"
     assert (cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED) == 255 * full).all() and not still_path.exists()
     revised = RevisedMask(7, 0.2, np.zeros(SHAPE, np.float32), full >= 0.5)
     later = SimpleNamespace(revised_keyframe_masks=(revised,), last_dynamic_mask=None, last_still_people_mask=None)
     artifacts.on_frame(SimpleNamespace(is_keyframe=False), SimpleNamespace(index=12), later)
+    artifacts.drain()
     assert not cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED).any()
     assert (cv2.imread(str(still_path), cv2.IMREAD_UNCHANGED) == 255 * full).all()
     assert sorted(p.name for p in (tmp_path / MASK_DIR).iterdir()) == [mask_path.name, still_path.name]
@@ -36,6 +38,7 @@ def test_a_revision_rewrites_the_keyframes_mask_files(tmp_path):
     moved = RevisedMask(7, 0.2, full, None)
     again = SimpleNamespace(revised_keyframe_masks=(moved,), last_dynamic_mask=None, last_still_people_mask=None)
     artifacts.on_frame(SimpleNamespace(is_keyframe=False), SimpleNamespace(index=30), again)
+    artifacts.close()
     assert (cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED) == 255 * full).all() and not still_path.exists()
 
 
@@ -158,3 +161,15 @@ def test_a_run_leaves_a_held_box_over_nobody_out_of_its_live_mask():
     system.close()
     assert shares[0] > 0.3                # the big box's fill took in the wall while it was the detection
     assert max(shares[3:]) < 0.02         # held beside the small one, over nobody: out of the mask
+
+
+def test_a_failed_mask_write_is_raised_naming_the_file(tmp_path):
+    """Masks are written on a background thread: a write that fails (here ``masks`` is a file, not a folder)
+    is raised by ``drain`` (or the next write), not lost with the thread."""
+    (tmp_path / MASK_DIR).write_text("not a folder")
+    artifacts = RunArtifacts(tmp_path, config=None, copy_keyframes=False)
+    system = SimpleNamespace(revised_keyframe_masks=(), last_dynamic_mask=PERSON_MASK, last_still_people_mask=None)
+    artifacts.on_frame(SimpleNamespace(is_keyframe=True), SimpleNamespace(index=5, depth=PERSON_MASK), system)
+    with pytest.raises(OSError, match=MASK_DIR):
+        artifacts.drain()
+    artifacts.close()                                       # nothing left to raise

@@ -162,6 +162,7 @@ class Pipeline:
                 self._write_report()
                 failing = False
             finally:   # also after an error: observers close (and finish writing) what they hold open
+                self.artifacts.close(raise_errors=not failing)
                 self._finish_observers(raise_errors=not failing)
         return self.summary
 

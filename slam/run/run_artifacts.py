@@ -15,13 +15,19 @@
 - ``map.npz``                      the final map (``backend.map_io``), unless ``export.save_map`` is off;
 - ``map_sparse.ply``               the landmarks as a coloured point cloud, unless ``export.sparse_ply`` is off.
 
-Every file is written atomically (temporary file in the same folder, then ``os.replace``).
+Every file is written atomically (temporary file in the same folder, then ``os.replace``). The per-keyframe
+files go through one background thread (``dynslam-writer``): each atomic write fsyncs the file and its folder
+(~15 ms a mask on this machine, 1.3 s of a 400-frame run), which the tracking thread no longer waits for. One
+thread keeps their order (a revision rewrites a mask written before); ``drain`` waits for them and raises a
+failed write's error, ``finish`` and ``close`` drain.
 """
 from __future__ import annotations
 
 import logging
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -73,6 +79,8 @@ class RunArtifacts:
         self.config = config
         self.copy_keyframes = copy_keyframes     # keep keyframe images: the dataset cannot give them back
         self._keyframe_rows: list[str] = []
+        self._writer: Optional[ThreadPoolExecutor] = None    # started at the first file
+        self._pending: deque[Future] = deque()
 
     def on_frame(self, out, frame, system) -> None:
         """Pipeline hook, once per processed frame: keyframes leave their mask (and images); earlier
@@ -90,26 +98,58 @@ class RunArtifacts:
             self._write_keyframe_images(frame)
 
     def _write_masks(self, index: int, mask: np.ndarray, still: Optional[np.ndarray]) -> None:
-        write_png_atomic(self.output_dir / MASK_DIR / f"{index:06d}.png", mask_to_png(mask))
-        still_path = self.output_dir / MASK_DIR / f"{index:06d}{STILL_SUFFIX}.png"
-        if still is not None and still.any():
-            write_png_atomic(still_path, still.astype(np.uint8) * 255)
-        elif still_path.exists():          # a revision found the pixels moving after all
-            still_path.unlink()
+        # The images are converted here, on the caller's thread: the writer gets arrays nobody changes later.
+        self._submit(_write_mask_files, self.output_dir / MASK_DIR, index, mask_to_png(mask),
+                     None if still is None or not still.any() else still.astype(np.uint8) * 255)
 
     def _write_keyframe_images(self, frame) -> None:
         folder = self.output_dir / KEYFRAME_DIR
-        write_png_atomic(folder / "color" / f"{frame.index:06d}.png", frame.rgb)
-        write_png_atomic(folder / "depth" / f"{frame.index:06d}.png", depth_to_millimetres(frame.depth))
         self._keyframe_rows.append(f"{frame.index} {frame.timestamp:.6f}")
         header = "# frame_index timestamp (color/<index:06d>.png BGR, depth/<index:06d>.png uint16 mm)\n"
-        write_text_atomic(folder / KEYFRAME_LIST, header + "\n".join(self._keyframe_rows) + "\n")
+        self._submit(_write_keyframe_files, folder, frame.index, frame.rgb.copy(), depth_to_millimetres(frame.depth),
+                     header + "\n".join(self._keyframe_rows) + "\n")
+
+    def _submit(self, write: Callable[..., None], *args) -> None:
+        """Hand a write to the writer thread; first raise the error of a write that already failed."""
+        while self._pending and self._pending[0].done():
+            self._pending.popleft().result()
+        if self._writer is None:
+            self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynslam-writer")
+        self._pending.append(self._writer.submit(write, *args))
+
+    def drain(self) -> None:
+        """Wait until every file handed to the writer is written; raise the first failed write's error
+        (an OSError naming the file) after waiting for the rest."""
+        error: Optional[BaseException] = None
+        while self._pending:
+            try:
+                self._pending.popleft().result()
+            except Exception as exc:   # noqa: BLE001 - kept and raised once the others are written
+                error = error or exc
+        if error is not None:
+            raise error
+
+    def close(self, raise_errors: bool = True) -> None:
+        """Drain and stop the writer thread (every exit path of a run; a second call does nothing)."""
+        try:
+            if raise_errors:
+                self.drain()
+            else:
+                try:
+                    self.drain()
+                except Exception as exc:   # noqa: BLE001 - the run is failing already: say it, keep its error
+                    log.error("%s", exc)
+        finally:
+            if self._writer is not None:
+                self._writer.shutdown(wait=True)
+                self._writer = None
 
     def finish(self, system) -> None:
         """At the end of a run: the keyframe masks the run's end revises, map.npz and map_sparse.ply
         (per ``config.export``)."""
         for revised in system.finish_keyframe_masks():
             self._write_masks(revised.frame_index, revised.mask, revised.still_people)
+        self.close()
         if system.localization_only or system.mapper.map.num_keyframes == 0:
             return   # a localisation run builds no map of its own
         export = self.config.export
@@ -117,6 +157,21 @@ class RunArtifacts:
             system.save_map(self.output_dir / MAP_FILE)
         if export.sparse_ply:
             write_sparse_ply(self.output_dir / SPARSE_PLY, system.mapper.map)
+
+
+def _write_mask_files(folder: Path, index: int, mask_png: np.ndarray, still_png: Optional[np.ndarray]) -> None:
+    write_png_atomic(folder / f"{index:06d}.png", mask_png)
+    still_path = folder / f"{index:06d}{STILL_SUFFIX}.png"
+    if still_png is not None:
+        write_png_atomic(still_path, still_png)
+    elif still_path.exists():          # a revision found the pixels moving after all
+        still_path.unlink()
+
+
+def _write_keyframe_files(folder: Path, index: int, rgb: np.ndarray, depth_mm: np.ndarray, frame_list: str) -> None:
+    write_png_atomic(folder / "color" / f"{index:06d}.png", rgb)
+    write_png_atomic(folder / "depth" / f"{index:06d}.png", depth_mm)
+    write_text_atomic(folder / KEYFRAME_LIST, frame_list)
 
 
 def read_keyframe_list(folder: Path) -> Optional[dict[float, int]]:
