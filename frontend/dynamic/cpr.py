@@ -158,12 +158,16 @@ process 32.5 -> 25.4 ms (sums of stage medians; means of three alternating runs 
 --frames 150`` each, on a machine whose medians moved 26-39 ms between identical runs).
 Compiled kernels (2026-12-02, ``cpr_kernels``: numba, the GIL released): the cloud, K-Means, the projective
 sub-pose ICP and the scores are loops over points doing the same arithmetic in the same order, so the masks are
-the same bits (``python tools/cpr_timing.py --compare``: 480 / 480 Bonn frames identical to the numpy code's) at
-half the time: process 23.2 -> 11.6 ms median on Bonn crowd (cloud 7.9 -> 2.9, K-Means 1.9 -> 1.1, target 0.9
--> 0.6, sub-poses 8.5 -> 4.0, correlation 2.8 -> 1.9; the two runs one after the other,
-``python tools/cpr_timing.py --frames 480``). What is left: the exact medians of ~1,200 candidate residuals per
-sub-cloud and iteration (the robust scales), the Gaussian weights' ``exp`` in the MLS. ``association: kdtree``
-keeps the numpy/scipy path. The first run on a machine compiles the kernels (~20 s, then numba's cache).
+the numpy code's (``python tools/cpr_timing.py --compare``: 480 / 480 Bonn frames identical; fr1/rpy 398 / 400,
+the other two differing in a few pixels from rounding) at half the time: process 23.2 -> 11.6 ms median on Bonn
+crowd (cloud 7.9 -> 2.9, K-Means 1.9 -> 1.1, target 0.9 -> 0.6, sub-poses 8.5 -> 4.0, correlation 2.8 -> 1.9),
+15.1 -> 7.1 ms on fr1/rpy (``python tools/cpr_timing.py [SEQ] --frames 480``, the two codes one after the
+other). In full runs (``python tools/speed_ab.py a0b2fdf``, two ABBA rounds) Bonn's trajectory stayed the same
+bits and its whole run went 91.3 -> 78.8 ms per frame (CPU 134.3 -> 122.3); fr1/rpy's diverged from those two
+frames (ATE 0.0227 -> 0.0230 m, 65 -> 70 keyframes, whose mapping ate the CPU cpr saved: 75.9 -> 73.4 ms).
+What is left: the exact medians of ~1,200 candidate residuals per sub-cloud and iteration (the robust
+scales), the Gaussian weights' ``exp`` in the MLS. ``association: kdtree`` keeps the numpy/scipy path. The
+first run on a machine compiles the kernels (~20 s; numba's cache after).
 The paper reports 213 ms on a Jetson Orin.
 """
 from __future__ import annotations
