@@ -112,7 +112,7 @@ class FlowEpipolarMethod:
 
     name = "flow_epipolar"
     needs_detector = True
-    prepares = False
+    prepares = True       # the optical flow needs only this image and the frame before's keypoints
     measures_motion = True
 
     def __init__(self, cfg: FlowEpipolarConfig, classes: ClassGroups):
@@ -124,11 +124,13 @@ class FlowEpipolarMethod:
         self._last_level: Optional[tuple[np.ndarray, np.ndarray]] = None   # (image, at lk_start_level) of track
         self._prev_raw: Optional[np.ndarray] = None       # (M,2) float32 raw pixel coordinates
         self._prev_und: Optional[np.ndarray] = None       # (M,2) undistorted
+        self._tracked: Optional[tuple[np.ndarray, tuple]] = None   # (the image, track()'s result) of prepare
         self.grid = GridPropagation(cfg)
 
     # ----------------------------------------------------------------------------------------------
     def reset(self) -> None:
         self._prev_gray = self._prev_raw = self._prev_und = self._prev_shape = self._last_level = None
+        self._tracked = None
         self.grid.reset()
 
     def _boxes(self, detections: Optional[list[Detection]]) -> list[Detection]:
@@ -202,7 +204,10 @@ class FlowEpipolarMethod:
 
     # ----------------------------------------------------------------------------------------------
     def prepare(self, ctx: DynamicContext) -> None:
-        """Nothing to do before the features and detections exist (see ``DynamicMethod.prepare``)."""
+        """The LK flow of the frame before's keypoints into this image (Algorithm 1, line 1): it needs neither
+        this frame's features nor its detections, so the rejector runs it on a thread of its own while they
+        are made (``DynamicMethod.prepare``); ``process`` does the rest."""
+        self._tracked = (ctx.gray, self.track(ctx.gray, ctx.camera))
 
     def process(self, ctx: DynamicContext) -> MethodOutput:
         cfg = self.cfg
@@ -243,7 +248,9 @@ class FlowEpipolarMethod:
         motion evidence (an F, or no boxes to judge)."""
         cfg = self.cfg
         # Tracked with or without boxes: the tracks that move against F are detector-free evidence too.
-        x0, cur_raw, x1, ok = self.track(ctx.gray, ctx.camera)
+        tracked, self._tracked = self._tracked, None
+        x0, cur_raw, x1, ok = tracked[1] if tracked is not None and tracked[0] is ctx.gray else \
+            self.track(ctx.gray, ctx.camera)
         in_any_box = np.zeros(len(cur_raw), bool)
         for b in boxes:
             in_any_box |= b.contains(cur_raw)

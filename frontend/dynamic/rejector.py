@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
@@ -52,7 +52,7 @@ class _BegunFrame:
     timestamp: float
     gray: np.ndarray               # the frame's image: ``process`` finds its begun work by this object
     detection: Optional[Future]
-    prepared: Optional[Future] = None
+    prepared: dict[str, Future] = field(default_factory=dict)   # method name -> its prepare on its thread
     ctx: Optional[DynamicContext] = None   # what the methods' prepare got; process completes it
 
 
@@ -82,7 +82,9 @@ class DynamicRejector:
         # thread, also while the features are extracted: OpenCV's ORB releases the GIL and numpy's array
         # loops do. Same computation, same order, so the same bits; measured on Bonn crowd (extraction +
         # cpr, 150 frames): 33 -> 23 ms per frame of wall time, the same CPU time.
-        self._prepare_thread: Optional[ThreadPoolExecutor] = None
+        # One thread per method with a prepare (cpr's registration, flow_epipolar's optical flow): they run
+        # side by side while the features are extracted and the other methods run on the tracking thread.
+        self._prepare_threads: dict[str, ThreadPoolExecutor] = {}
         # Begun, not yet processed, oldest first: the frame being processed and, with the System's
         # lookahead, the next one (begun while this one is tracked; each thread takes them in order).
         self._begun: deque[_BegunFrame] = deque()
@@ -121,21 +123,23 @@ class DynamicRejector:
     def begin_frame(self, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray, timestamp: float,
                     predicted_T_cw: Optional[np.ndarray], last_T_cw: Optional[np.ndarray]) -> None:
         if not (self._begun and self._begun[-1].timestamp == timestamp and self._begun[-1].gray is gray
-                and self._begun[-1].prepared is None):
+                and not self._begun[-1].prepared):
             self.begin_images(rgb, gray, timestamp)
         threaded = [m for m in self.methods if m.prepares]
         if threaded:
             # With the pose prediction of the frame before's tracking, as in line: the same bits.
             ctx = DynamicContext(None, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
-            if self._prepare_thread is None:
-                self._prepare_thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-dynamic")
             self._begun[-1].ctx = ctx
-            self._begun[-1].prepared = self._prepare_thread.submit(self._prepare, threaded, ctx)
+            for method in threaded:
+                if method.name not in self._prepare_threads:
+                    self._prepare_threads[method.name] = ThreadPoolExecutor(
+                        1, thread_name_prefix=f"dynslam-{method.name.replace('_', '-')}")
+                self._begun[-1].prepared[method.name] = self._prepare_threads[method.name].submit(
+                    self._prepare, method, ctx)
 
-    def _prepare(self, methods: list[DynamicMethod], ctx: DynamicContext) -> None:
-        for method in methods:
-            with self.timer.measure(f"dynamic.{method.name}"):
-                method.prepare(ctx)
+    def _prepare(self, method: DynamicMethod, ctx: DynamicContext) -> None:
+        with self.timer.measure(f"dynamic.{method.name}"):
+            method.prepare(ctx)
 
     def _take_begun(self, timestamp: float, gray: np.ndarray) -> Optional[_BegunFrame]:
         """The frame's begun work; frames begun before it but never processed (their extraction failed)
@@ -151,7 +155,7 @@ class DynamicRejector:
     @staticmethod
     def _end(begun: _BegunFrame) -> None:
         """Wait for a dropped frame's work; its failure is not the next frame's."""
-        for future in (begun.detection, begun.prepared):
+        for future in (begun.detection, *begun.prepared.values()):
             if future is not None:
                 future.exception()
 
@@ -178,12 +182,12 @@ class DynamicRejector:
 
     def _context(self, frame: FeatureFrame, rgb: np.ndarray, gray: np.ndarray, depth: np.ndarray,
                  predicted_T_cw: Optional[np.ndarray],
-                 last_T_cw: Optional[np.ndarray]) -> tuple[DynamicContext, Optional[Future]]:
+                 last_T_cw: Optional[np.ndarray]) -> tuple[DynamicContext, dict[str, Future]]:
         """The frame's context (the one its threaded work began with, when it was begun) with its
-        detections, and the future of that threaded work (None when there is none)."""
+        detections, and the futures of that threaded work by method (empty when there is none)."""
         begun = self._take_begun(frame.timestamp, gray)
         ctx = DynamicContext(frame, rgb, gray, depth, self.camera, None, predicted_T_cw, last_T_cw)
-        prepared = None
+        prepared: dict[str, Future] = {}
         if begun is not None and begun.ctx is not None:
             ctx, prepared = begun.ctx, begun.prepared     # the context the methods prepared, completed
             ctx.frame = frame
@@ -196,17 +200,18 @@ class DynamicRejector:
                 ctx.detections = self._box_memory.update(ctx.detections)
         return ctx, prepared
 
-    def _run_methods(self, ctx: DynamicContext, prepared: Optional[Future]) -> dict[str, MethodOutput]:
+    def _run_methods(self, ctx: DynamicContext, prepared: dict[str, Future]) -> dict[str, MethodOutput]:
         """Every method's output, in config order. The methods without threaded work run first, while the
-        threaded ones (cpr) may still run; the methods are independent, so the order changes no output."""
+        threaded ones (cpr, flow_epipolar) may still run; the methods are independent, so the order changes
+        no output."""
         outputs: dict[str, MethodOutput] = {}
         for method in sorted(self.methods, key=lambda m: m.prepares):
-            if method.prepares and prepared is not None:
+            future = prepared.get(method.name)
+            if future is not None:
                 with self.timer.measure("dynamic.prepare_wait"):
-                    prepared.result()          # re-raises a method's failure here, in frame order
-                prepared = None
+                    future.result()            # re-raises a method's failure here, in frame order
             with self.timer.measure(f"dynamic.{method.name}"):
-                if not method.prepares:
+                if future is None:             # not begun on its thread (or no thread): prepared in line
                     method.prepare(ctx)
                 outputs[method.name] = method.process(ctx)
         outputs = {m.name: outputs[m.name] for m in self.methods}
@@ -378,10 +383,11 @@ class DynamicRejector:
         """Stop the threads and persist what is worth keeping (the detection cache)."""
         while self._begun:                 # frames begun, never processed: their work ends first
             self._end(self._begun.popleft())
-        for pool in (self._detect_thread, self._prepare_thread):
+        for pool in (self._detect_thread, *self._prepare_threads.values()):
             if pool is not None:
                 pool.shutdown(wait=True)
-        self._detect_thread = self._prepare_thread = None
+        self._detect_thread = None
+        self._prepare_threads = {}
         if self.detector is not None:
             self.detector.save()
 
