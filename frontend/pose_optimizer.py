@@ -9,12 +9,17 @@ An optional prior (the motion model's prediction with a per-axis sigma) joins th
 one more Gaussian factor. The result also says how well the inliers alone fix the position (``sigma_t``):
 a far wall is all a person filling the view may leave, and depth noise grows with z^2, so the forward
 translation can be loose although every inlier agrees.
+
+The per-observation work (residuals, Jacobians, the weighted normal equations) is a compiled loop (numba,
+cache on disk): the optimisation runs up to 4 x 10 Gauss-Newton iterations twice a frame, and as numpy
+array operations on a few hundred points each iteration cost ~0.1 ms of call overhead.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import Optional
 
+import numba
 import numpy as np
 
 from slam.core.geometry import invert, orthonormalize, se3_exp, se3_log
@@ -46,36 +51,89 @@ class PoseResult:
     cov_t: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
 
 
-def _residuals_and_jacobians(T_cw, obs: PoseObservations, fx, fy, cx, cy, bf):
-    """Residuals e = z - h(T X) (N,3) and Jacobians of h wrt a left twist (N,3,6).
+@numba.njit(nogil=True, cache=True)
+def _point_terms(T, X, uv, u_right, fx, fy, cx, cy, bf, e, J):
+    """One observation's residual e = z - h(T X) (into ``e`` (3,)) and its Jacobian wrt a left twist (into ``J``
+    (3,6)); returns the point's depth in the camera (unclamped).
 
     Row by row in closed form: d(pc)/d(xi) = [-[pc]x | I] for T <- exp(xi) T, xi = (omega, v), times the
     projection's derivative (a, 0, c) for u, (0, b, d) for v, (a, 0, g) for the virtual right u (zero for a
-    mono observation). The same values as the batched (N,3,3) @ (N,3,6) product, ~1.5x cheaper (this runs
-    ~20 times per optimisation, twice a frame)."""
-    pc = obs.points_w @ T_cw[:3, :3].T + T_cw[:3, 3]
-    x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-6)
-    iz = 1.0 / z
+    mono observation: ``u_right`` NaN)."""
+    x = T[0, 0] * X[0] + T[0, 1] * X[1] + T[0, 2] * X[2] + T[0, 3]
+    y = T[1, 0] * X[0] + T[1, 1] * X[1] + T[1, 2] * X[2] + T[1, 3]
+    zc = T[2, 0] * X[0] + T[2, 1] * X[1] + T[2, 2] * X[2] + T[2, 3]
+    iz = 1.0 / max(zc, 1e-6)
     u = fx * x * iz + cx
-    v = fy * y * iz + cy
-    ur = u - bf * iz
-    stereo = np.isfinite(obs.u_right)
-    e = np.empty((len(pc), 3))
-    e[:, 0], e[:, 1] = obs.uv[:, 0] - u, obs.uv[:, 1] - v
-    e[:, 2] = np.where(stereo, obs.u_right - ur, 0.0)
-    zc = pc[:, 2]                     # the Jacobian uses the unclamped depth, as d(pc)/d(xi) does
+    e[0], e[1] = uv[0] - u, uv[1] - (fy * y * iz + cy)
     a, b = fx * iz, fy * iz
     iz2 = iz * iz
-    c, d, g = -fx * x * iz2, -fy * y * iz2, -(fx * x - bf) * iz2
-    J = np.empty((len(pc), 3, 6))
-    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = c * y, a * zc - c * x, -a * y
-    J[:, 0, 3], J[:, 0, 4], J[:, 0, 5] = a, 0.0, c
-    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = d * y - b * zc, -d * x, b * x
-    J[:, 1, 3], J[:, 1, 4], J[:, 1, 5] = 0.0, b, d
-    J[:, 2, 0], J[:, 2, 1], J[:, 2, 2] = g * y, a * zc - g * x, -a * y
-    J[:, 2, 3], J[:, 2, 4], J[:, 2, 5] = a, 0.0, g
-    J[~stereo, 2, :] = 0.0
-    return e, J, stereo, pc[:, 2]
+    c, d = -fx * x * iz2, -fy * y * iz2
+    J[0, 0], J[0, 1], J[0, 2], J[0, 3], J[0, 4], J[0, 5] = c * y, a * zc - c * x, -a * y, a, 0.0, c
+    J[1, 0], J[1, 1], J[1, 2], J[1, 3], J[1, 4], J[1, 5] = d * y - b * zc, -d * x, b * x, 0.0, b, d
+    if np.isfinite(u_right):
+        g = -(fx * x - bf) * iz2
+        e[2] = u_right - (u - bf * iz)
+        J[2, 0], J[2, 1], J[2, 2], J[2, 3], J[2, 4], J[2, 5] = g * y, a * zc - g * x, -a * y, a, 0.0, g
+    else:
+        e[2] = 0.0
+        J[2, :] = 0.0
+    return zc
+
+
+@numba.njit(nogil=True, cache=True)
+def _all_terms(T, points_w, uv, u_right, fx, fy, cx, cy, bf):
+    n = len(points_w)
+    e = np.empty((n, 3))
+    J = np.empty((n, 3, 6))
+    depth = np.empty(n)
+    for i in range(n):
+        depth[i] = _point_terms(T, points_w[i], uv[i], u_right[i], fx, fy, cx, cy, bf, e[i], J[i])
+    return e, J, depth
+
+
+def _residuals_and_jacobians(T_cw, obs: PoseObservations, fx, fy, cx, cy, bf):
+    """Residuals e = z - h(T X) (N,3), Jacobians of h wrt a left twist (N,3,6), which observations are stereo
+    and each point's depth in the camera (``_point_terms``)."""
+    e, J, depth = _all_terms(np.ascontiguousarray(T_cw, dtype=np.float64), *_arrays(obs), float(fx), float(fy),
+                             float(cx), float(cy), float(bf))
+    return e, J, np.isfinite(obs.u_right), depth
+
+
+def _arrays(obs: PoseObservations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return (np.ascontiguousarray(obs.points_w, dtype=np.float64), np.ascontiguousarray(obs.uv, dtype=np.float64),
+            np.ascontiguousarray(obs.u_right, dtype=np.float64))
+
+
+@numba.njit(nogil=True, cache=True)
+def _normal_equations(T, points_w, uv, u_right, information, active, threshold, robust, fx, fy, cx, cy, bf):
+    """H = sum w J^T J and b = sum w J^T e over the observations, w = information, 0 for an inactive point or
+    one behind the camera, times the Huber weight (threshold: the chi-square) when ``robust``."""
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    e = np.empty(3)
+    J = np.empty((3, 6))
+    for i in range(len(points_w)):
+        if not active[i]:
+            continue
+        depth = _point_terms(T, points_w[i], uv[i], u_right[i], fx, fy, cx, cy, bf, e, J)
+        if not depth > 1e-3:           # no meaningful projection: it must not vote
+            continue
+        w = information[i]
+        if robust:
+            r = np.sqrt(information[i] * (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]))
+            delta = np.sqrt(threshold[i])
+            if r > delta:
+                w *= delta / max(r, 1e-12)
+        for row in range(3):
+            for j in range(6):
+                wj = w * J[row, j]
+                g[j] += wj * e[row]
+                for k in range(j, 6):
+                    H[j, k] += wj * J[row, k]
+    for j in range(6):
+        for k in range(j):
+            H[j, k] = H[k, j]
+    return H, g
 
 
 def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: int = 10, rounds: int = 4,
@@ -85,23 +143,16 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
     fx, fy, cx, cy, bf = camera.fx, camera.fy, camera.cx, camera.cy, camera.bf
     n = len(obs.points_w)
     active = np.ones(n, bool)
-    T = T_cw.copy()
+    T = np.array(T_cw, dtype=np.float64)
     chi2 = np.zeros(n)
     threshold = np.where(np.isfinite(obs.u_right), chi2_stereo, chi2_mono)
+    points_w, uv, u_right = _arrays(obs)
+    information = np.ascontiguousarray(obs.information, dtype=np.float64)
+    args = (float(fx), float(fy), float(cx), float(cy), float(bf))
     for round_idx in range(rounds):
         robust = round_idx < 2
         for _ in range(iterations):
-            e, J, _, depth = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
-            chi2 = obs.information * np.einsum("ij,ij->i", e, e)
-            # A point behind (or at) the camera has no meaningful projection: it must not vote.
-            w = obs.information * active * (depth > 1e-3)
-            if robust:
-                delta = np.sqrt(threshold)
-                r = np.sqrt(chi2)
-                w = w * np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
-            Jw = (J * w[:, None, None]).reshape(-1, 6)
-            H = Jw.T @ J.reshape(-1, 6)
-            b = Jw.T @ e.reshape(-1)
+            H, b = _normal_equations(T, points_w, uv, u_right, information, active, threshold, robust, *args)
             if prior is not None:
                 # Residual log(T_prior T^-1) shrinks by the step (left twist): J = I for this factor.
                 H = H + np.diag(prior.information)
@@ -113,8 +164,8 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
             T = se3_exp(step) @ T
             if np.linalg.norm(step) < 1e-7:
                 break
-        e, J, _, depth = _residuals_and_jacobians(T, obs, fx, fy, cx, cy, bf)
-        chi2 = obs.information * np.einsum("ij,ij->i", e, e)
+        e, J, depth = _all_terms(T, points_w, uv, u_right, *args)
+        chi2 = information * np.einsum("ij,ij->i", e, e)
         active = (chi2 <= threshold) & (depth > 1e-3)
         if active.sum() < 10:
             break
