@@ -280,3 +280,61 @@ def test_search_by_projection_when_no_candidate_is_close_enough_in_descriptor_sp
     points = MapPoints(np.array([5]), np.array([[0.0, 0.0, 2.0]]), np.full((1, 32), 255, np.uint8), np.array([0]))
     m = search_by_projection(frame, points, np.eye(4), camera, 15.0, 50, 0.8, np.ones(1, bool))
     assert m.keypoint_of_point.tolist() == [-1]
+
+
+def _projection_matches_reference(frame, points, T_cw, camera, radius, max_distance, ratio, eligible, gap=1):
+    """``search_by_projection`` spelt out pair by pair, with its documented order among equal distances
+    (the lower keypoint index is the nearer candidate; the lower point index keeps a contested keypoint)."""
+    from slam.core.descriptors import hamming
+
+    m = len(points)
+    out = np.full(m, -1)
+    pc = points.xyz @ T_cw[:3, :3].T + T_cw[:3, 3]
+    uv, z = camera.project(pc)
+    visible = (z > camera.min_depth) & camera.in_image(np.nan_to_num(uv, nan=-1.0))
+    best = {}
+    for i in np.flatnonzero(visible):
+        r = radius * frame.scale_factors[points.octaves[i]]
+        cands = sorted((int(hamming(points.descriptors[i], frame.descriptors[j])), j)
+                       for j in np.flatnonzero(eligible)
+                       if np.hypot(*(frame.uv[j] - uv[i])) <= r and abs(frame.octaves[j] - points.octaves[i]) <= gap)
+        if not cands or cands[0][0] > max_distance:
+            continue
+        if len(cands) > 1 and frame.octaves[cands[1][1]] == frame.octaves[cands[0][1]] \
+                and not cands[0][0] <= ratio * cands[1][0]:
+            continue
+        d, j = cands[0]
+        if j not in best or d < best[j][0]:
+            best[j] = (d, i)
+    for j, (d, i) in best.items():
+        out[i] = j
+    return out, visible
+
+
+def test_search_by_projection_matches_a_pair_by_pair_reference():
+    """Random points and keypoints, descriptors with many equal distances (few bits differ), several levels:
+    the compiled search gives the reference's matches point for point."""
+    from slam.core.camera import PinholeCamera
+    from frontend.matching import search_by_projection
+
+    camera = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
+    rng = np.random.default_rng(11)
+    scales = 1.2 ** np.arange(8)
+    matched = 0
+    for trial in range(20):
+        k, m = int(rng.integers(50, 400)), int(rng.integers(20, 300))
+        base = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+        desc = base[rng.integers(0, 3, k)] ^ (rng.random((k, 32)) < 0.1).astype(np.uint8)
+        uv = np.column_stack([rng.uniform(-5, 645, k), rng.uniform(-5, 485, k)])
+        frame = FeatureFrame(0, 0.0, uv, uv, rng.integers(0, 4, k), desc, np.ones(k), np.full(k, np.nan),
+                             np.zeros(k), scales)
+        xyz = np.column_stack([rng.uniform(-2, 2, m), rng.uniform(-1.5, 1.5, m), rng.uniform(-0.5, 4, m)])
+        pdesc = base[rng.integers(0, 3, m)] ^ (rng.random((m, 32)) < 0.1).astype(np.uint8)
+        points = MapPoints(np.arange(m), xyz, pdesc, rng.integers(0, 4, m))
+        eligible = rng.random(k) > 0.2
+        got = search_by_projection(frame, points, np.eye(4), camera, 30.0, 60, 0.9, eligible)
+        expected, visible = _projection_matches_reference(frame, points, np.eye(4), camera, 30.0, 60, 0.9, eligible)
+        np.testing.assert_array_equal(got.visible, visible)
+        np.testing.assert_array_equal(got.keypoint_of_point, expected, err_msg=f"trial {trial}")
+        matched += int((got.keypoint_of_point >= 0).sum())
+    assert matched > 100                                     # the comparison is not of empty results
