@@ -20,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from frontend.dynamic import cpr_kernels as kernels
+from frontend.dynamic import cpr_icp_kernels as kernels
 from slam.core.camera import PinholeCamera
 
 def _distort(camera: PinholeCamera, uv: np.ndarray) -> np.ndarray:
@@ -68,7 +68,7 @@ class ProjectiveGrid:
 
 class ProjectiveTarget:
     """The reference's samples on its padded sampling grid; candidates by projection (see the module). The
-    table and the association are ``cpr_kernels``' (``projective_table``, ``window_query``), which the
+    table and the association are ``cpr_icp_kernels``' (``projective_table``, ``window_query``), which the
     compiled ICP and scores read through ``kernel_args``."""
 
     def __init__(self, grid: ProjectiveGrid, sample_pix: np.ndarray, xyz: np.ndarray, intensity: np.ndarray):

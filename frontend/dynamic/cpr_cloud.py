@@ -2,7 +2,7 @@
 
 Used by ``frontend.dynamic.cpr`` (which documents the method and the choices made) and ``cpr_icp`` (which
 registers against these clouds). The per-point work (sampling, voxel filter, MLS, the dense target) is one
-compiled pass in ``cpr_kernels``: per-voxel sums in input order, voxel and neighbour lookups through dense
+compiled pass in ``cpr_cloud_kernels``: per-voxel sums in input order, voxel and neighbour lookups through dense
 index tables, 3x3 eigenvectors in closed form. The k-d tree of ``association: kdtree`` stays scipy's.
 """
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontend.dynamic import cpr_kernels as kernels
+from frontend.dynamic import cpr_cloud_kernels as kernels
 from frontend.dynamic.cpr_assoc import ProjectiveGrid, ProjectiveTarget
 from slam.core.camera import PinholeCamera
 from slam.core.dynamic_config import CprConfig
@@ -138,7 +138,7 @@ class Cloud:
 def build_cloud(depth: np.ndarray, gray: np.ndarray, pix: np.ndarray, rays: np.ndarray, cfg: CprConfig,
                 min_depth: float = 0.0, table: Optional[CellTable] = None) -> Cloud:
     """Section 3.3: sampled cloud (depth in (min_depth, max_depth]), voxel filter, MLS; plus the dense target
-    (the kept samples projected on their voxel's MLS plane). One compiled pass (``cpr_kernels``); ``table``:
+    (the kept samples projected on their voxel's MLS plane). One compiled pass (``cpr_cloud_kernels``); ``table``:
     a cell table kept between frames (a fresh one otherwise)."""
     h, w = depth.shape[:2]
     table = table or CellTable()

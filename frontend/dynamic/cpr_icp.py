@@ -2,7 +2,7 @@
 
 Used by ``frontend.dynamic.cpr`` (which documents the method, the interpretation of the paper and the
 deviations); the clouds come from ``cpr_cloud``. K-Means, and the sub-poses and scores against a projective
-target (the default association), are compiled kernels (``cpr_kernels``). Against the k-d tree (``association:
+target (the default association), are compiled kernels (``cpr_icp_kernels``). Against the k-d tree (``association:
 kdtree``) everything is whole-array numpy/scipy: one tree query per ICP iteration for all sub-clouds together,
 per-sub-cloud sums with ``np.add.reduceat``, per-sub-cloud medians from one row-wise partition, batched 3x3 SVDs.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from frontend.dynamic import cpr_kernels as kernels
+from frontend.dynamic import cpr_icp_kernels as kernels
 from frontend.dynamic.cpr_assoc import ProjectiveTarget
 from frontend.dynamic.cpr_cloud import Cloud
 from slam.core.dynamic_config import CprConfig
@@ -24,7 +24,7 @@ def cluster(xyz: np.ndarray, k: int, seed: int, iterations: int = 10) -> np.ndar
     """K-Means labels (k-means++, fixed seed); deterministic for the same input.
 
     ``scipy.cluster.vq.kmeans2(xyz, k, iter=iterations, minit="++", seed=default_rng(seed))`` bit for bit
-    (tests/test_cpr_vectorised.py), compiled (``cpr_kernels.kmeans_labels``): the generator's draws are taken
+    (tests/test_cpr_vectorised.py), compiled (``cpr_icp_kernels.kmeans_labels``): the generator's draws are taken
     here in kmeans2's order (they do not depend on the data), the seeding and the Lloyd iterations there."""
     n = len(xyz)
     if n <= k:
