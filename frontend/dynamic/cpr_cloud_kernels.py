@@ -238,13 +238,8 @@ def mls_cols(x, y, z, radius, voxel, scratch):
 
 
 @numba.njit(**_JIT)
-def build_cloud_arrays(depth, gray, pix, rays, min_depth, max_depth, voxel, radius, scratch):
-    """Section 3.3 in one pass: the depth samples in (min_depth, max_depth], their voxel filter, MLS, and
-    the dense registration target (every kept sample projected on its voxel's plane). ``scratch``: an int32
-    table of -1 (``_cell_table``).
-
-    Returns (xyz (M,3), intensity (M,), normals (M,3), sample_pix (S,2), sample_point (S,) index into xyz or
-    -1, dense_xyz (D,3), dense_intensity (D,), the most cells a box needed)."""
+def _depth_samples(depth, gray, pix, rays, min_depth, max_depth):
+    """The samples with depth in (min_depth, max_depth]: camera-frame x, y, z, grey / 255 and their pixels."""
     s_all = len(pix)
     x = np.empty(s_all)
     y = np.empty(s_all)
@@ -260,10 +255,44 @@ def build_cloud_arrays(depth, gray, pix, rays, min_depth, max_depth, voxel, radi
             inten[n] = np.float64(gray[r, c]) / 255.0
             sample[n] = s
             n += 1
-    x, y, z, inten, sample = x[:n], y[:n], z[:n], inten[:n], sample[:n]
     sample_pix = np.empty((n, 2), pix.dtype)
     for i in range(n):
         sample_pix[i, 0], sample_pix[i, 1] = pix[sample[i], 0], pix[sample[i], 1]
+    return x[:n], y[:n], z[:n], inten[:n], sample_pix
+
+
+@numba.njit(**_JIT)
+def _dense_target(x, y, z, inten, inverse, new_index, smooth, normals):
+    """Every sample whose voxel is kept, projected on that voxel's MLS plane, and its intensity."""
+    count = 0
+    for i in range(len(x)):
+        if new_index[inverse[i]] >= 0:
+            count += 1
+    dense = np.empty((count, 3))
+    dense_i = np.empty(count)
+    a = 0
+    for i in range(len(x)):
+        v = inverse[i]
+        if new_index[v] < 0:
+            continue
+        nx, ny, nz = normals[v, 0], normals[v, 1], normals[v, 2]
+        off = (x[i] - smooth[v, 0]) * nx + (y[i] - smooth[v, 1]) * ny + (z[i] - smooth[v, 2]) * nz
+        dense[a, 0], dense[a, 1], dense[a, 2] = x[i] - off * nx, y[i] - off * ny, z[i] - off * nz
+        dense_i[a] = inten[i]
+        a += 1
+    return dense, dense_i
+
+
+@numba.njit(**_JIT)
+def build_cloud_arrays(depth, gray, pix, rays, min_depth, max_depth, voxel, radius, scratch):
+    """Section 3.3 in one pass: the depth samples in (min_depth, max_depth], their voxel filter, MLS, and
+    the dense registration target (every kept sample projected on its voxel's plane). ``scratch``: an int32
+    table of -1 (``_cell_table``).
+
+    Returns (xyz (M,3), intensity (M,), normals (M,3), sample_pix (S,2), sample_point (S,) index into xyz or
+    -1, dense_xyz (D,3), dense_intensity (D,), the most cells a box needed)."""
+    x, y, z, inten, sample_pix = _depth_samples(depth, gray, pix, rays, min_depth, max_depth)
+    n = len(x)
     if n == 0:
         return (np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), sample_pix, np.zeros(0, np.int64),
                 np.zeros((0, 3)), np.zeros(0), 0)
@@ -289,21 +318,7 @@ def build_cloud_arrays(depth, gray, pix, rays, min_depth, max_depth, voxel, radi
             out_i[t] = ci[v]
             out_n[t] = normals[v]
     sample_point = np.empty(n, np.int64)
-    dense_n = 0
     for i in range(n):
         sample_point[i] = new_index[inverse[i]]
-        if sample_point[i] >= 0:
-            dense_n += 1
-    dense = np.empty((dense_n, 3))
-    dense_i = np.empty(dense_n)
-    a = 0
-    for i in range(n):
-        v = inverse[i]
-        if new_index[v] < 0:
-            continue
-        nx, ny, nz = normals[v, 0], normals[v, 1], normals[v, 2]
-        off = (x[i] - smooth[v, 0]) * nx + (y[i] - smooth[v, 1]) * ny + (z[i] - smooth[v, 2]) * nz
-        dense[a, 0], dense[a, 1], dense[a, 2] = x[i] - off * nx, y[i] - off * ny, z[i] - off * nz
-        dense_i[a] = inten[i]
-        a += 1
+    dense, dense_i = _dense_target(x, y, z, inten, inverse, new_index, smooth, normals)
     return xyz, out_i, out_n, sample_pix, sample_point, dense, dense_i, max(volume, mls_volume)

@@ -229,14 +229,111 @@ def _kabsch_step(sums, ws):
 
 
 @numba.njit(**_JIT)
+def _gather_window(pose, p0, i0, a, n, table, fx, fy, cx, cy, width, height, seen, cell, offsets, sentinel,
+                   p, cand, dist, r_int):
+    """Points a..a+n moved by ``pose`` (into ``p``), and every point's window candidates: table rows (``cand``),
+    distances (``dist``, inf where a cell has no sample) and intensity residuals (``r_int``)."""
+    for t in range(n):
+        s = a + t
+        for e in range(3):
+            p[t, e] = pose[e, 0] * p0[s, 0] + pose[e, 1] * p0[s, 1] + pose[e, 2] * p0[s, 2] + pose[e, 3]
+        centre = _window_centre(p[t, 0], p[t, 1], p[t, 2], fx, fy, cx, cy, width, height, seen, cell, sentinel,
+                                False)
+        for o in range(len(offsets)):
+            g = sentinel if centre == sentinel else centre + offsets[o]
+            cand[t, o] = g
+            dx, dy, dz = table[g, 0] - p[t, 0], table[g, 1] - p[t, 1], table[g, 2] - p[t, 2]
+            dist[t, o] = np.sqrt((dx * dx + dy * dy) + dz * dz)
+            r_int[t, o] = abs(i0[s] - table[g, 3])
+
+
+@numba.njit(**_JIT)
+def _intensity_matches(n, dist, r_int, cand, table, nu, floor_geom, floor_intensity, buf_g, buf_i, q, w):
+    """Eqs. 4-9: each point's candidate with the largest product of Student-t weights of its distance and
+    intensity residual, the scales over all candidates of the sub-cloud; into ``q`` and ``w`` (0 without a
+    candidate). False when no point has a candidate."""
+    count = 0
+    for t in range(n):
+        for o in range(dist.shape[1]):
+            if np.isfinite(dist[t, o]):
+                buf_g[count] = dist[t, o]
+                buf_i[count] = r_int[t, o]
+                count += 1
+    if count == 0:
+        return False
+    sg = _robust_scale(buf_g[:count], floor_geom)
+    si = _robust_scale(buf_i[:count], floor_intensity)
+    for t in range(n):
+        # the largest product of the two weights (nu+1)^2 / (den_g den_i) is the smallest product of their
+        # denominators: one division per point instead of two per candidate
+        best, best_den = -1, np.inf
+        for o in range(dist.shape[1]):
+            if np.isfinite(dist[t, o]):
+                qg, qi = dist[t, o] / sg, r_int[t, o] / si
+                den = (nu + qg * qg) * (nu + qi * qi)
+                if den < best_den:
+                    best, best_den = o, den
+        if best < 0:
+            w[t] = 0.0
+            continue
+        g = cand[t, best]
+        q[t, 0], q[t, 1], q[t, 2] = table[g, 0], table[g, 1], table[g, 2]
+        w[t] = _t_weight(dist[t, best], sg, nu) * _t_weight(r_int[t, best], si, nu)
+    return True
+
+
+@numba.njit(**_JIT)
+def _nearest_matches(n, dist, cand, table, nu, floor_geom, buf_g, q, w):
+    """Plain robust ICP: each point's nearest candidate under the geometric Student-t weight (0 without a
+    candidate); into ``q`` and ``w``. False when no point has a candidate."""
+    m = 0
+    for t in range(n):
+        best, best_d = 0, np.inf
+        for o in range(dist.shape[1]):
+            if dist[t, o] < best_d:
+                best, best_d = o, dist[t, o]
+        g = cand[t, best]
+        q[t, 0], q[t, 1], q[t, 2] = table[g, 0], table[g, 1], table[g, 2]
+        w[t] = best_d
+        if np.isfinite(best_d):
+            buf_g[m] = best_d
+            m += 1
+    if m == 0:
+        return False
+    sg = _robust_scale(buf_g[:m], floor_geom)
+    for t in range(n):
+        w[t] = _t_weight(w[t], sg, nu) if np.isfinite(w[t]) else 0.0
+    return True
+
+
+@numba.njit(**_JIT)
+def _weighted_sums(n, p, q, w):
+    """(sum w p, sum w q, sum w p q^T) as 15 values, and sum w (Eq. 10's weighted point-to-point step)."""
+    sums = np.zeros(15)
+    ws = 0.0
+    for t in range(n):
+        wt = w[t]
+        if wt == 0.0:
+            continue
+        ws += wt
+        for e in range(3):
+            sums[e] += wt * p[t, e]
+            sums[3 + e] += wt * q[t, e]
+        for e in range(3):
+            we = wt * p[t, e]
+            for f in range(3):
+                sums[6 + 3 * e + f] += we * q[t, f]
+    return sums, ws
+
+
+@numba.njit(**_JIT)
 def sub_poses_projective(p0, i0, starts, valid, init, table, fx, fy, cx, cy, width,
                          height, seen, cell, offsets, sentinel, nu, intensity_iterations, iterations,
                          window_candidates, floor_geom, floor_intensity):
     """Sub-pose ICP of ``cpr_icp.sub_poses`` with projective association. ``p0``/``i0`` are the registered
-    points sorted by sub-cloud (segments [starts[j], starts[j+1])). Intensity-assisted iterations first (each
-    point's window candidate with the largest product of Student-t weights of distance and intensity, the
-    scales over all candidate residuals of its sub-cloud), then plain robust ICP (the window's nearest,
-    geometric weight). A sub-cloud stops when a step moves it < 0.1 mm and 0.01 deg."""
+    points sorted by sub-cloud (segments [starts[j], starts[j+1])). Intensity-assisted iterations first
+    (``_intensity_matches``), then plain robust ICP (``_nearest_matches``). A sub-cloud stops when a step moves
+    it < 0.1 mm and 0.01 deg."""
     k = len(starts) - 1
     poses = np.empty((k, 4, 4))
     for j in range(k):
@@ -261,81 +358,18 @@ def sub_poses_projective(p0, i0, starts, valid, init, table, fx, fy, cx, cy, wid
             if not valid[j]:
                 continue
             pose = poses[j]
+            a, n = starts[j], starts[j + 1] - starts[j]
             for _ in range(iters):
-                a, b = starts[j], starts[j + 1]
-                n = b - a
-                count = 0
-                for t in range(n):                    # move, project, gather the window
-                    s = a + t
-                    for e in range(3):
-                        p[t, e] = (pose[e, 0] * p0[s, 0] + pose[e, 1] * p0[s, 1] + pose[e, 2] * p0[s, 2]
-                                   + pose[e, 3])
-                    centre = _window_centre(p[t, 0], p[t, 1], p[t, 2], fx, fy, cx, cy, width, height, seen,
-                                            cell, sentinel, False)
-                    for o in range(c):
-                        g = sentinel if centre == sentinel else centre + offsets[o]
-                        cand[t, o] = g
-                        dx, dy, dz = table[g, 0] - p[t, 0], table[g, 1] - p[t, 1], table[g, 2] - p[t, 2]
-                        d = np.sqrt((dx * dx + dy * dy) + dz * dz)
-                        dist[t, o] = d
-                        r_int[t, o] = abs(i0[s] - table[g, 3])
-                        if intensity and np.isfinite(d):
-                            buf_g[count] = d
-                            buf_i[count] = r_int[t, o]
-                            count += 1
+                _gather_window(pose, p0, i0, a, n, table, fx, fy, cx, cy, width, height, seen, cell, offsets,
+                               sentinel, p, cand, dist, r_int)
                 if intensity:
-                    if count == 0:
-                        break
-                    sg = _robust_scale(buf_g[:count], floor_geom)
-                    si = _robust_scale(buf_i[:count], floor_intensity)
-                    for t in range(n):
-                        # the largest product of the two weights (nu+1)^2 / (den_g den_i) is the smallest
-                        # product of their denominators: one division per point instead of two per candidate
-                        best, best_den = -1, np.inf
-                        for o in range(c):
-                            if np.isfinite(dist[t, o]):
-                                qg, qi = dist[t, o] / sg, r_int[t, o] / si
-                                den = (nu + qg * qg) * (nu + qi * qi)
-                                if den < best_den:
-                                    best, best_den = o, den
-                        if best < 0:
-                            w[t] = 0.0
-                            continue
-                        g = cand[t, best]
-                        q[t, 0], q[t, 1], q[t, 2] = table[g, 0], table[g, 1], table[g, 2]
-                        w[t] = _t_weight(dist[t, best], sg, nu) * _t_weight(r_int[t, best], si, nu)
+                    found = _intensity_matches(n, dist, r_int, cand, table, nu, floor_geom, floor_intensity, buf_g,
+                                               buf_i, q, w)
                 else:
-                    m = 0
-                    for t in range(n):                # the nearest candidate of every point
-                        best, best_d = 0, np.inf
-                        for o in range(c):
-                            if dist[t, o] < best_d:
-                                best, best_d = o, dist[t, o]
-                        g = cand[t, best]
-                        q[t, 0], q[t, 1], q[t, 2] = table[g, 0], table[g, 1], table[g, 2]
-                        w[t] = best_d
-                        if np.isfinite(best_d):
-                            buf_g[m] = best_d
-                            m += 1
-                    if m == 0:
-                        break
-                    sg = _robust_scale(buf_g[:m], floor_geom)
-                    for t in range(n):
-                        w[t] = _t_weight(w[t], sg, nu) if np.isfinite(w[t]) else 0.0
-                sums = np.zeros(15)
-                ws = 0.0
-                for t in range(n):
-                    wt = w[t]
-                    if wt == 0.0:
-                        continue
-                    ws += wt
-                    for e in range(3):
-                        sums[e] += wt * p[t, e]
-                        sums[3 + e] += wt * q[t, e]
-                    for e in range(3):
-                        we = wt * p[t, e]
-                        for f in range(3):
-                            sums[6 + 3 * e + f] += we * q[t, f]
+                    found = _nearest_matches(n, dist, cand, table, nu, floor_geom, buf_g, q, w)
+                if not found:
+                    break
+                sums, ws = _weighted_sums(n, p, q, w)
                 if not ws > 1e-9:
                     break
                 delta = _kabsch_step(sums, ws)
