@@ -124,9 +124,11 @@ class LocalMapper:
     def add_factors(self, rows: np.ndarray) -> None:
         """Observation rows become graph factors (their landmarks must be graph variables)."""
         obs = self.map.observations
-        for r in rows:
-            obs.factor[r] = self.graph.add_observation(int(obs.kf[r]), int(obs.lm[r]), obs.uv[r], float(obs.depth[r]),
-                                                       float(obs.level_scale[r]), float(obs.dynamic_prob[r]))
+        # The columns once (each attribute is a fresh view) and as Python numbers: ~300 rows per keyframe.
+        kf, lm, uv = obs.kf[rows].tolist(), obs.lm[rows].tolist(), obs.uv[rows].tolist()
+        depth, scale, dyn = obs.depth[rows].tolist(), obs.level_scale[rows].tolist(), obs.dynamic_prob[rows].tolist()
+        add = self.graph.add_observation
+        obs.factor[rows] = [add(kf[i], lm[i], uv[i], depth[i], scale[i], dyn[i]) for i in range(len(kf))]
         obs.in_graph[rows] = True
 
     # --- creation ----------------------------------------------------------------------------------

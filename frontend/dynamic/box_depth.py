@@ -94,11 +94,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontend.dynamic.base import Detection, DynamicContext, MethodOutput, keypoints_in_mask
+from frontend.dynamic.box_depth_kernels import mutual_best
 from frontend.dynamic.box_depth_segmentation import (box_pixels, cached_person_layer, flood_fill, image_sides,
                                                      overlaps_enough, segment_box)
 from frontend.dynamic.box_depth_segmentation import (eq8_filter, nearest_valid,  # noqa: F401  (re-exported)
                                                      seed_points, side_distance)
-from slam.core.descriptors import hamming
 from slam.core.dynamic_config import BoxDepthConfig, ClassGroups
 
 _MAX_HAMMING = 50            # descriptor distance cap for frame-to-frame matching (ORB-SLAM TH_LOW)
@@ -135,35 +135,24 @@ def composite(img: np.ndarray, uv: np.ndarray, skip_zero: bool = False) -> np.nd
     return (centre + neigh.mean(axis=1)) / 2.0
 
 
-def _first_per_group(groups: np.ndarray, keys: np.ndarray) -> np.ndarray:
-    """Index of the smallest (non-negative, < 2**20) key in each group: one argsort on a packed key."""
-    order = np.argsort(groups.astype(np.int64) * (1 << 20) + keys, kind="stable")
-    g = groups[order]
-    return order[np.r_[True, g[1:] != g[:-1]]]
-
-
 def match_descriptors(desc_a: np.ndarray, uv_a: np.ndarray, desc_b: np.ndarray, uv_b: np.ndarray,
                       radius: float = _MATCH_RADIUS_PX, max_distance: int = _MAX_HAMMING) -> np.ndarray:
     """Mutually best Hamming matches (M,2) of indices into a and b among the pairs less than
-    ``radius`` px apart (a cross-checked brute-force match restricted to frame-to-frame motion)."""
+    ``radius`` px apart (a cross-checked brute-force match restricted to frame-to-frame motion); of pairs
+    at the same distance the first the k-d tree lists wins (``box_depth_kernels.mutual_best``)."""
     if len(desc_a) == 0 or len(desc_b) == 0:
         return np.zeros((0, 2), int)
     pairs = cKDTree(np.asarray(uv_a, float)).sparse_distance_matrix(
         cKDTree(np.asarray(uv_b, float)), radius, output_type="ndarray")
     if len(pairs) == 0:
         return np.zeros((0, 2), int)
-    ia, ib = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-    ham = hamming(desc_a[ia], desc_b[ib])
-    keep = ham <= max_distance
-    ia, ib, ham = ia[keep], ib[keep], ham[keep]
-    if len(ia) == 0:
-        return np.zeros((0, 2), int)
-    best_a = np.zeros(len(ia), bool)
-    best_a[_first_per_group(ia, ham)] = True
-    best_b = np.zeros(len(ia), bool)
-    best_b[_first_per_group(ib, ham)] = True
-    ok = best_a & best_b
-    return np.stack([ia[ok], ib[ok]], axis=1)
+    return mutual_best(_words(desc_a), _words(desc_b), pairs["i"].astype(np.int64), pairs["j"].astype(np.int64),
+                       int(max_distance))
+
+
+def _words(desc: np.ndarray) -> np.ndarray:
+    """ORB descriptors (N, 32) uint8 as (N, 4) uint64 words for the kernel's bit count."""
+    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
 
 
 # --------------------------------------------------------------------------------------------
