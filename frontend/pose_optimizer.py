@@ -16,13 +16,15 @@ array operations on a few hundred points each iteration cost ~0.1 ms of call ove
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Optional
 
 import numba
 import numpy as np
 
-from slam.core.geometry import invert, orthonormalize, se3_exp, se3_log
+from frontend import se3_kernels
+from slam.core.geometry import orthonormalize
 
 
 @dataclass
@@ -136,6 +138,31 @@ def _normal_equations(T, points_w, uv, u_right, information, active, threshold, 
     return H, g
 
 
+@numba.njit(nogil=True, cache=True)
+def _gauss_newton(T, points_w, uv, u_right, information, active, threshold, robust, fx, fy, cx, cy, bf,
+                  iterations, use_prior, prior_T, prior_information):
+    """Up to ``iterations`` Gauss-Newton steps T <- exp(step) T; stops early on a step under 1e-7 or a normal
+    matrix that is not positive definite. The prior's residual log(T_prior T^-1) shrinks by the step (left
+    twist): its Jacobian is the identity."""
+    for _ in range(iterations):
+        H, b = _normal_equations(T, points_w, uv, u_right, information, active, threshold, robust,
+                                 fx, fy, cx, cy, bf)
+        if use_prior:
+            r = se3_kernels.se3_log(se3_kernels.compose(prior_T, se3_kernels.invert(T)))
+            for j in range(6):
+                H[j, j] += prior_information[j]
+                b[j] += prior_information[j] * r[j]
+        for j in range(6):
+            H[j, j] += 1e-9
+        step, ok = se3_kernels.solve_spd(H, b)
+        if not ok:
+            break
+        T = se3_kernels.compose(se3_kernels.se3_exp(step), T)
+        if math.sqrt(np.sum(step * step)) < 1e-7:
+            break
+    return T
+
+
 def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: int = 10, rounds: int = 4,
                   chi2_mono: float = 5.991, chi2_stereo: float = 7.815,
                   prior: Optional[PosePrior] = None) -> PoseResult:
@@ -149,21 +176,12 @@ def optimize_pose(T_cw: np.ndarray, obs: PoseObservations, camera, iterations: i
     points_w, uv, u_right = _arrays(obs)
     information = np.ascontiguousarray(obs.information, dtype=np.float64)
     args = (float(fx), float(fy), float(cx), float(cy), float(bf))
+    use_prior = prior is not None
+    prior_T = np.ascontiguousarray(prior.T_cw, dtype=np.float64) if use_prior else np.eye(4)
+    prior_information = np.ascontiguousarray(prior.information, dtype=np.float64) if use_prior else np.zeros(6)
     for round_idx in range(rounds):
-        robust = round_idx < 2
-        for _ in range(iterations):
-            H, b = _normal_equations(T, points_w, uv, u_right, information, active, threshold, robust, *args)
-            if prior is not None:
-                # Residual log(T_prior T^-1) shrinks by the step (left twist): J = I for this factor.
-                H = H + np.diag(prior.information)
-                b = b + prior.information * se3_log(prior.T_cw @ invert(T))
-            try:
-                step = np.linalg.solve(H + 1e-9 * np.eye(6), b)
-            except np.linalg.LinAlgError:
-                break
-            T = se3_exp(step) @ T
-            if np.linalg.norm(step) < 1e-7:
-                break
+        T = _gauss_newton(T, points_w, uv, u_right, information, active, threshold, round_idx < 2, *args,
+                          int(iterations), use_prior, prior_T, prior_information)
         e, J, depth = _all_terms(T, points_w, uv, u_right, *args)
         chi2 = information * np.einsum("ij,ij->i", e, e)
         active = (chi2 <= threshold) & (depth > 1e-3)

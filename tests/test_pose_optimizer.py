@@ -229,3 +229,30 @@ def test_the_motion_prior_steadies_a_weak_pose_and_leaves_a_strong_one(seed):
     a = optimize_pose(strong_scene.T_start, strong_scene.obs, CAMERA)
     b = optimize_pose(strong_scene.T_start, strong_scene.obs, CAMERA, prior=off)
     assert pose_error(a.T_cw, b.T_cw)[0] < 0.001
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-12, 1e-6, 0.3, 3.0, np.pi - 1e-6])
+def test_compiled_se3_agrees_with_the_geometry_module(scale):
+    """The optimiser's compiled exp / log / inverse / solve (frontend/se3_kernels.py) against
+    slam.core.geometry and numpy, from no rotation to nearly half a turn."""
+    from frontend import se3_kernels
+    from slam.core.geometry import se3_log
+
+    rng = np.random.default_rng(int(scale * 1000))
+    for _ in range(5):
+        axis = rng.normal(size=3)
+        xi = np.r_[scale * axis / np.linalg.norm(axis), rng.normal(size=3)]
+        T = se3_exp(xi)
+        # geometry's closed forms lose digits below ~1e-3 rad (1 - cos(theta)); the kernels use the series
+        assert np.allclose(se3_kernels.se3_exp(xi), T, rtol=0, atol=1e-10)
+        assert np.allclose(se3_kernels.se3_log(T), se3_log(T), rtol=0, atol=1e-9)
+        assert np.allclose(se3_kernels.se3_log(T), xi, rtol=0, atol=1e-9)
+        assert np.allclose(se3_kernels.invert(T), invert(T), rtol=0, atol=1e-15)
+        inverse = se3_kernels.se3_exp(-xi)
+        assert np.allclose(se3_kernels.compose(se3_kernels.se3_exp(xi), inverse), np.eye(4), rtol=0, atol=1e-14)
+    A = rng.normal(size=(6, 6))
+    H, b = A @ A.T + 1e-3 * np.eye(6), rng.normal(size=6)
+    x, ok = se3_kernels.solve_spd(H, b)
+    assert ok and np.allclose(x, np.linalg.solve(H, b), rtol=1e-9, atol=1e-12)
+    _, ok = se3_kernels.solve_spd(-H, b)        # not positive definite: refused, the optimiser stops
+    assert not ok
