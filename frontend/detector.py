@@ -4,7 +4,10 @@ The models and their exact pre/post-processing are described in ``../shared/mode
 
 * ``yolox_nano`` (416x416): BGR raw 0..255, letterbox at the top-left padded with 114; output
   ``[1, 3549, 85]`` = (x, y, log w, log h, obj, 80 class scores) for strides 8/16/32, decoded as
-  ``xy = (p + grid) * stride``, ``wh = exp(p) * stride``, ``score = obj * cls``.
+  ``xy = (p + grid) * stride``, ``wh = exp(p) * stride``, ``score = obj * cls``. With ``fit_input`` (an
+  option, off by default) the same network runs on the letterboxed image's own size rounded up to 32 (416 x 320 for
+  640 x 480, output ``[1, 2730, 85]``): the 96 rows of padding below a 4:3 image cost a quarter of the
+  work and found nothing (``frontend/onnx_input_shape.py``).
 * ``nanodet`` (320x320): BGR normalised with mean/std, letterbox centred padded with 0; per stride a
   class-score map ``[1, HW, 80]`` and a distance distribution ``[1, HW, 32]`` (left, top, right,
   bottom x 8 bins: softmax, expectation, times stride) measured from the cell centres
@@ -36,6 +39,7 @@ from frontend.dynamic.base import Detection, Detector
 from frontend.model_lookup import (ENV_MODEL, MODEL_FILES, DetectorError,  # noqa: F401  (re-exported)
                                    ModelNotFoundError, default_model_dir, resolve_model_path)
 from frontend.model_lookup import howto as _howto
+from frontend.onnx_input_shape import with_input_size
 from slam.core.atomic_io import write_npz_atomic
 from slam.core.dynamic_config import ClassGroups, DetectorConfig
 
@@ -45,6 +49,17 @@ _NANODET_MEAN = np.array([103.53, 116.28, 123.675], dtype=np.float32)
 _NANODET_STD = np.array([57.375, 57.12, 58.395], dtype=np.float32)
 _NANODET_BINS = 8
 _YOLOX_PAD = 114.0
+# Models whose graphs hold no input size of their own (frontend/onnx_input_shape.py): NanoDet-m's channel
+# shuffles reshape to fixed sizes, so it keeps its square input.
+_FITS_ANY_INPUT = {"yolox_nano"}
+
+
+class _InputGeometry:
+    """One network input size: its ONNX Runtime session, its anchors and its reused input buffer."""
+
+    def __init__(self, session, height: int, width: int, priors: np.ndarray):
+        self.session, self.height, self.width, self.priors = session, height, width, priors
+        self.blob = np.empty((1, 3, height, width), dtype=np.float32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -59,7 +74,8 @@ class OnnxDetector:
     """
 
     def __init__(self, model_path, kind: str = "yolox_nano", score_threshold: float = 0.3,
-                 nms_iou: float = 0.45, threads: int = 1, class_filter: Optional[Iterable[int]] = None):
+                 nms_iou: float = 0.45, threads: int = 1, class_filter: Optional[Iterable[int]] = None,
+                 fit_input: bool = False):
         if kind not in MODEL_FILES:
             raise DetectorError(f"unknown detector model '{kind}' (expected one of {', '.join(MODEL_FILES)})")
         self.kind = kind
@@ -79,15 +95,15 @@ class OnnxDetector:
                                 f"[1, 3, {self.size}, {self.size}] for '{kind}': is it the right file for "
                                 f"dynamic.detector.model? {_howto(kind)}")
         self._output_names = self._pick_outputs()
-        self._priors = self._make_priors()
-        # Reused network input (1, 3, S, S); preprocess() returns this buffer.
-        self._blob = np.empty((1, 3, self.size, self.size), dtype=np.float32)
+        self.fit_input = bool(fit_input) and self.kind in _FITS_ANY_INPUT
+        self._square = _InputGeometry(self._session, self.size, self.size, self._make_priors(self.size, self.size))
+        self._geometries: dict[tuple[int, int], _InputGeometry] = {}   # image (h, w) -> the network input
         self._inv_std = (1.0 / _NANODET_STD).astype(np.float32)
         self._mean_over_std = (_NANODET_MEAN / _NANODET_STD).astype(np.float32)
 
     # -- loading ----------------------------------------------------------------------------------------
 
-    def _load(self):
+    def _load(self, model_bytes: Optional[bytes] = None):
         path = self.model_path
         if not path.is_file():
             raise DetectorError(f"detector model file not found: {path}; {_howto(self.kind)}")
@@ -102,7 +118,8 @@ class OnnxDetector:
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         opts.log_severity_level = 3
         try:
-            return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+            return ort.InferenceSession(str(path) if model_bytes is None else model_bytes, sess_options=opts,
+                                        providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types for bad protobufs
             raise DetectorError(f"cannot load detector model {path} (corrupt or not an ONNX model: "
                                 f"{type(exc).__name__}: {str(exc).strip()[:200]}); {_howto(self.kind)}") from exc
@@ -123,13 +140,13 @@ class OnnxDetector:
                 ordered.append(f"{prefix}{s}")
         return ordered
 
-    def _make_priors(self):
-        """Per-anchor (x, y, stride) for all strides, row-major per stride."""
+    def _make_priors(self, height: int, width: int):
+        """Per-anchor (x, y, stride) for all strides of a height x width input, row-major per stride."""
         grids = []
         for s in _STRIDES:
-            n = self.size // s
-            ys, xs = np.meshgrid(np.arange(n, dtype=np.float32), np.arange(n, dtype=np.float32), indexing="ij")
-            grid = np.stack([xs.ravel(), ys.ravel(), np.full(n * n, s, dtype=np.float32)], axis=1)
+            rows, cols = height // s, width // s
+            ys, xs = np.meshgrid(np.arange(rows, dtype=np.float32), np.arange(cols, dtype=np.float32), indexing="ij")
+            grid = np.stack([xs.ravel(), ys.ravel(), np.full(rows * cols, s, dtype=np.float32)], axis=1)
             if self.kind == "nanodet":
                 grid[:, :2] = (grid[:, :2] + 0.5) * s   # cell centres in input pixels
             grids.append(grid)
@@ -143,18 +160,57 @@ class OnnxDetector:
 
     # -- inference ----------------------------------------------------------------------------------------
 
+    def input_geometry(self, height: int, width: int) -> "_InputGeometry":
+        """The network input for height x width images: the model's square, or with ``fit_input`` (YOLOX) the
+        letterboxed image's own size rounded up to the largest stride (416 x 320 for 640 x 480), made at
+        the first image of that size and kept. A model whose graph does not run at that size (a re-export
+        with fixed reshapes) keeps the square, with a warning."""
+        key = (int(height), int(width))
+        if key in self._geometries:
+            return self._geometries[key]
+        geometry = self._square
+        if self.fit_input:
+            _, nw, nh, _, _ = letterbox_params(height, width, self.size, self.kind == "nanodet")
+            stride = max(_STRIDES)
+            in_h, in_w = -(-nh // stride) * stride, -(-nw // stride) * stride
+            if (in_h, in_w) != (self.size, self.size):
+                geometry = self._fitted_geometry(in_h, in_w) or self._square
+        self._geometries[key] = geometry
+        return geometry
+
+    def _fitted_geometry(self, height: int, width: int) -> Optional["_InputGeometry"]:
+        priors = self._make_priors(height, width)
+        try:
+            session = self._load(with_input_size(self.model_path.read_bytes(), height, width))
+            probe = np.full((1, 3, height, width), _YOLOX_PAD, np.float32)
+            anchors = session.run(self._output_names, {self._input_name: probe})[0].shape[1]
+        except Exception as exc:   # ONNX Runtime's own exception types (Fail, InvalidArgument ...) included
+            warnings.warn(f"detector model {self.model_path} does not run on a {width} x {height} input "
+                          f"({type(exc).__name__}: {str(exc).strip()[:160]}); using its {self.size} x {self.size} "
+                          f"input (dynamic.detector.fit_input)", RuntimeWarning, stacklevel=3)
+            return None
+        if anchors != len(priors):
+            warnings.warn(f"detector model {self.model_path} gives {anchors} anchors on a {width} x {height} "
+                          f"input, expected {len(priors)}; using its {self.size} x {self.size} input",
+                          RuntimeWarning, stacklevel=3)
+            return None
+        return _InputGeometry(session, height, width, priors)
+
     def preprocess(self, bgr: np.ndarray) -> tuple[np.ndarray, float, int, int]:
-        """Network input (1,3,S,S) float32 (an internal buffer, overwritten by the next call) and the
-        letterbox (r, left, top): input pixel = image pixel * r + (left, top)."""
+        """Network input (1,3,H,W) float32 (an internal buffer, overwritten by the next call; H x W from
+        ``input_geometry``) and the letterbox (r, left, top): input pixel = image pixel * r + (left, top)."""
         if bgr.ndim == 2:
             bgr = cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR)
         elif bgr.shape[2] == 4:
             bgr = cv2.cvtColor(bgr, cv2.COLOR_BGRA2BGR)
         h, w = bgr.shape[:2]
         centred = self.kind == "nanodet"
+        geometry = self.input_geometry(h, w)
         r, nw, nh, left, top = letterbox_params(h, w, self.size, centred)
+        if centred:   # centred in the input actually used
+            left, top = (geometry.width - nw) // 2, (geometry.height - nh) // 2
         resized = cv2.resize(bgr, (nw, nh), interpolation=cv2.INTER_LINEAR)
-        blob = self._blob
+        blob = geometry.blob
         blob.fill(_YOLOX_PAD if self.kind == "yolox_nano" else 0.0)   # NanoDet: 0 after normalisation
         for c in range(3):   # write each channel straight into the planar input
             plane = blob[0, c, top:top + nh, left:left + nw]
@@ -182,13 +238,14 @@ class OnnxDetector:
         """Like ``detect`` but as arrays: boxes (N,4) float64 x0 y0 x1 y1, scores (N,), class ids (N,)."""
         h, w = bgr.shape[:2]
         blob, r, left, top = self.preprocess(bgr)
-        outputs = self._session.run(self._output_names, {self._input_name: blob})
+        geometry = self.input_geometry(h, w)
+        outputs = geometry.session.run(self._output_names, {self._input_name: blob})
         if self.kind == "yolox_nano":
             # Threshold on the objectness first: the score is obj*cls <= obj, so this is exact and
             # spares the decoding of almost every anchor.
             p = outputs[0].reshape(-1, outputs[0].shape[-1])
             sel = np.flatnonzero(p[:, 4] >= self.score_threshold)
-            pri = self._priors[sel]
+            pri = geometry.priors[sel]
             p = p[sel]
             stride = pri[:, 2:3]
             xy = (p[:, :2] + pri[:, :2]) * stride
@@ -199,7 +256,7 @@ class OnnxDetector:
             cls = np.concatenate([o.reshape(-1, o.shape[-1]) for o in outputs[0::2]], axis=0)
             sel = np.flatnonzero(cls.max(axis=1) >= self.score_threshold)
             dis = np.concatenate([o.reshape(-1, o.shape[-1]) for o in outputs[1::2]], axis=0)[sel]
-            anchor_boxes = self._nanodet_boxes(dis, self._priors[sel])
+            anchor_boxes = self._nanodet_boxes(dis, geometry.priors[sel])
             anchor_scores = cls[sel]
         if self.class_filter is not None:
             cols = self.class_filter[self.class_filter < anchor_scores.shape[1]]
@@ -221,7 +278,8 @@ class OnnxDetector:
 
     def __repr__(self) -> str:
         return (f"OnnxDetector(kind={self.kind!r}, path={str(self.model_path)!r}, "
-                f"score_threshold={self.score_threshold}, nms_iou={self.nms_iou}, threads={self.threads})")
+                f"score_threshold={self.score_threshold}, nms_iou={self.nms_iou}, threads={self.threads}, "
+                f"fit_input={self.fit_input})")
 
 
 # --------------------------------------------------------------------------------------------
@@ -260,6 +318,8 @@ def cache_path_for(cache_dir, sequence_name: str, cfg: DetectorConfig,
     seq = re.sub(r"[^A-Za-z0-9_.-]+", "_", sequence_name.strip()).strip("._") or "sequence"
     digest = model_digest(resolve_model_path(cfg) if model_path is None else model_path)
     name = f"{seq}__{cfg.model}_m{digest[:16]}_s{cfg.score_threshold:.3f}_n{cfg.nms_iou:.3f}"
+    if cfg.fit_input and cfg.model in _FITS_ANY_INPUT:
+        name += "_fit"       # the boxes of the fitted input differ a little near the bottom edge
     if class_filter is not None:
         ids = ",".join(str(c) for c in sorted(set(int(c) for c in class_filter)))
         name += "_c" + hashlib.sha1(ids.encode()).hexdigest()[:8]
@@ -367,7 +427,8 @@ def build_detector(cfg: DetectorConfig, classes: ClassGroups, sequence_name: str
     class_filter = class_filter_of(classes)
     path = resolve_model_path(cfg)
     detector = OnnxDetector(path, kind=cfg.model, score_threshold=cfg.score_threshold,
-                            nms_iou=cfg.nms_iou, threads=cfg.threads, class_filter=class_filter)
+                            nms_iou=cfg.nms_iou, threads=cfg.threads, class_filter=class_filter,
+                            fit_input=cfg.fit_input)
     if cfg.cache_dir:
         return CachedDetector(detector, cache_path_for(cfg.cache_dir, sequence_name, cfg, class_filter, path),
                               model_digest(path))

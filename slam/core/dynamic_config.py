@@ -32,6 +32,12 @@ class DetectorConfig(ConfigSection):
     score_threshold: float = Field(0.3, **_UNIT)
     nms_iou: float = Field(0.45, **_UNIT)
     threads: int = Field(1, ge=1)
+    fit_input: bool = False
+    """Run YOLOX on the letterboxed image's own size rounded up to its largest stride (416 x 320 for
+    640 x 480) instead of its exported 416 x 416 square: the same scale and weights, 22 % less detector
+    time, boxes within IoU 0.9 of the square's (frontend/onnx_input_shape.py). Off by default: fr1/rpy-400
+    over seeds 0-4 gave 0.0219-0.0268 m (median 0.0237) with it against 0.0218-0.0225 (0.0224) without
+    (docs/design.md, "Detector input"). NanoDet-m keeps its square (its graph has fixed reshapes)."""
     hold_frames: int = Field(5, ge=0)
     """A dynamic-class box the detector loses is held this many frames, moved on at its corners' last
     velocity (frontend/dynamic/box_memory.py; 0 = off). Longer than the gaps a detector leaves on a
