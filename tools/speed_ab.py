@@ -13,6 +13,7 @@ round and the mean), CPU ms per frame (all threads and processes: the steadier m
 machine), the ratio of the means, ATE, and whether the two trajectories are the same bits (a speed-only
 change must leave them so).
 
+Each side first runs 40 frames untimed (a new worktree compiles its numba kernels on its first run).
 BASE is any git revision; it is checked out with ``git worktree`` beside this checkout (so that
 ``../shared`` resolves for both, as for the detector model) and removed at the end, Ctrl-C included. The
 runs' folders stay in ``--output`` (default results/speed_ab). One measurement at a time on a 2-core machine.
@@ -89,6 +90,17 @@ def _run_benchmark(tree: Path, sequence: Path, output: Path,
     return row["whole_run_ms_per_frame"], cpu_ms, row["ate_rmse_m"], trajectory
 
 
+def _warm_up(tree: Path, sequence: Path, output: Path, passthrough: list[str]) -> None:
+    """A short untimed run of ``tree`` on ``sequence`` (40 frames): a fresh worktree compiles its numba kernels
+    on its first run (~20-30 s, once), which must not land in the first timed round."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    cmd = [sys.executable, "-m", "slam.cli", "run", str(sequence), "-q", "--max-frames", "40", "-o", str(output),
+           *passthrough]
+    proc = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
+
+
 def _checkout(revision: str) -> Path:
     """A detached worktree of ``revision`` beside this checkout."""
     sha = subprocess.run(["git", "rev-parse", "--verify", f"{revision}^{{commit}}"], cwd=REPO, capture_output=True,
@@ -122,6 +134,9 @@ def main(argv=None) -> int:
     base_tree = _checkout(args.base)
     results: dict[str, tuple[SideRuns, SideRuns]] = {}
     try:
+        for side, tree in enumerate((REPO, base_tree)):
+            _warm_up(tree, args.sequences[0].resolve(), args.output / f"warm_up_{SIDES[side].replace(' ', '_')}",
+                     passthrough)
         for seq in args.sequences:
             sides = (SideRuns(), SideRuns())
             for k, side in enumerate(round_order(args.rounds)):
