@@ -427,3 +427,27 @@ def test_a_person_cut_by_the_image_border_keeps_their_pixels_at_the_border():
     b = BoxDepthMethod(BoxDepthConfig(eq8_border_on_body=False), ClassGroups()).process(
         make_ctx(frame, inside_depth, [inside]))
     np.testing.assert_array_equal(a.mask, b.mask)
+
+
+def test_ring_depths_are_the_sampled_pixels_around_the_box():
+    """The ring around a box as four strips holds the same sampled depths as the mask over the whole
+    outer rectangle it replaced (order aside: the person layer only counts them), for boxes anywhere,
+    touching the image's edges included."""
+    from frontend.dynamic import box_depth_segmentation as seg
+
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.0, 5.0, (H, W)).astype(np.float32)
+    depth[rng.random((H, W)) < 0.2] = 0.0
+    step = seg._LAYER_PIXEL_STEP
+    boxes = [(0, 0, W, H), (0, 0, 1, 1), (W - 1, H - 1, W, H)]
+    for _ in range(300):
+        x0, y0 = int(rng.integers(0, W - 1)), int(rng.integers(0, H - 1))
+        boxes.append((x0, y0, int(rng.integers(x0 + 1, W + 1)), int(rng.integers(y0 + 1, H + 1))))
+    for x0, y0, x1, y1 in boxes:
+        dx, dy = int(seg._RING_SHARE * (x1 - x0)) + 1, int(seg._RING_SHARE * (y1 - y0)) + 1
+        X0, Y0, X1, Y1 = max(x0 - dx, 0), max(y0 - dy, 0), min(x1 + dx, W), min(y1 + dy, H)
+        rr, cc = np.mgrid[Y0:Y1:step, X0:X1:step]
+        outer = depth[Y0:Y1:step, X0:X1:step].astype(float)
+        want = outer[~((rr >= y0) & (rr < y1) & (cc >= x0) & (cc < x1)) & (outer > 0)]
+        got = seg._ring_depths((x0, y0, x1, y1), depth)
+        assert np.array_equal(np.sort(got), np.sort(want)), (x0, y0, x1, y1)

@@ -233,9 +233,9 @@ def test_the_motion_prior_steadies_a_weak_pose_and_leaves_a_strong_one(seed):
 
 @pytest.mark.parametrize("scale", [0.0, 1e-12, 1e-6, 0.3, 3.0, np.pi - 1e-6])
 def test_compiled_se3_agrees_with_the_geometry_module(scale):
-    """The optimiser's compiled exp / log / inverse / solve (frontend/se3_kernels.py) against
+    """The optimiser's compiled exp / log / inverse / solve (frontend/pose_optimizer.py) against
     slam.core.geometry and numpy, from no rotation to nearly half a turn."""
-    from frontend import se3_kernels
+    from frontend import pose_optimizer as po
     from slam.core.geometry import se3_log
 
     rng = np.random.default_rng(int(scale * 1000))
@@ -244,15 +244,15 @@ def test_compiled_se3_agrees_with_the_geometry_module(scale):
         xi = np.r_[scale * axis / np.linalg.norm(axis), rng.normal(size=3)]
         T = se3_exp(xi)
         # geometry's closed forms lose digits below ~1e-3 rad (1 - cos(theta)); the kernels use the series
-        assert np.allclose(se3_kernels.se3_exp(xi), T, rtol=0, atol=1e-10)
-        assert np.allclose(se3_kernels.se3_log(T), se3_log(T), rtol=0, atol=1e-9)
-        assert np.allclose(se3_kernels.se3_log(T), xi, rtol=0, atol=1e-9)
-        assert np.allclose(se3_kernels.invert(T), invert(T), rtol=0, atol=1e-15)
-        inverse = se3_kernels.se3_exp(-xi)
-        assert np.allclose(se3_kernels.compose(se3_kernels.se3_exp(xi), inverse), np.eye(4), rtol=0, atol=1e-14)
+        assert np.allclose(po._exp_se3(xi), T, rtol=0, atol=1e-10)
+        assert np.allclose(po._log_se3(T), se3_log(T), rtol=0, atol=1e-9)
+        assert np.allclose(po._log_se3(T), xi, rtol=0, atol=1e-9)
+        assert np.allclose(po._invert(T), invert(T), rtol=0, atol=1e-15)
+        inverse = po._exp_se3(-xi)
+        assert np.allclose(po._compose(po._exp_se3(xi), inverse), np.eye(4), rtol=0, atol=1e-14)
     A = rng.normal(size=(6, 6))
     H, b = A @ A.T + 1e-3 * np.eye(6), rng.normal(size=6)
-    x, ok = se3_kernels.solve_spd(H, b)
+    x, ok = po._solve_spd(H, b)
     assert ok and np.allclose(x, np.linalg.solve(H, b), rtol=1e-9, atol=1e-12)
-    _, ok = se3_kernels.solve_spd(-H, b)        # not positive definite: refused, the optimiser stops
+    _, ok = po._solve_spd(-H, b)        # not positive definite: refused, the optimiser stops
     assert not ok

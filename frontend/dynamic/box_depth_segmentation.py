@@ -181,15 +181,20 @@ def person_layer(box: tuple[int, int, int, int], depth: np.ndarray) -> Optional[
 
 
 def _ring_depths(box: tuple[int, int, int, int], depth: np.ndarray) -> np.ndarray:
-    """Valid depths of the ring ``_RING_SHARE`` of the box's size wide around it."""
+    """Valid depths of the ring ``_RING_SHARE`` of the box's size wide around it (sampled every
+    ``_LAYER_PIXEL_STEP`` pixels from the ring's outer corner), as the strips above, below, left and right
+    of the box: only their count near a depth matters, not their order."""
     x0, y0, x1, y1 = box
     h, w = depth.shape
     dx, dy = int(_RING_SHARE * (x1 - x0)) + 1, int(_RING_SHARE * (y1 - y0)) + 1
     X0, Y0, X1, Y1 = max(x0 - dx, 0), max(y0 - dy, 0), min(x1 + dx, w), min(y1 + dy, h)
-    outer = depth[Y0:Y1:_LAYER_PIXEL_STEP, X0:X1:_LAYER_PIXEL_STEP].astype(float)
-    rr, cc = np.mgrid[Y0:Y1:_LAYER_PIXEL_STEP, X0:X1:_LAYER_PIXEL_STEP]
-    in_ring = ~((rr >= y0) & (rr < y1) & (cc >= x0) & (cc < x1)) & (outer > 0)
-    return outer[in_ring]
+    outer = depth[Y0:Y1:_LAYER_PIXEL_STEP, X0:X1:_LAYER_PIXEL_STEP]
+    step = _LAYER_PIXEL_STEP
+    r0, r1 = -(-max(y0 - Y0, 0) // step), -(-max(y1 - Y0, 0) // step)     # sampled rows inside [y0, y1)
+    c0, c1 = -(-max(x0 - X0, 0) // step), -(-max(x1 - X0, 0) // step)
+    strips = (outer[:r0], outer[r1:], outer[r0:r1, :c0], outer[r0:r1, c1:])
+    ring = np.concatenate([strip.ravel() for strip in strips]).astype(float)
+    return ring[ring > 0]
 
 
 def segment_box(depth: np.ndarray, cfg: BoxDepthConfig, layer: Optional[float] = None,
