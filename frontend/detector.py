@@ -19,13 +19,12 @@ per-class NMS and clipping to the image. Decoding is vectorised; the grids are b
 
 ``CachedDetector`` stores the boxes per frame timestamp in a compressed ``.npz`` so repeated runs on
 the same sequence skip the network, keyed by the model file's sha256 (in its name and inside it) so
-another model never reads old boxes; ``build_detector`` wires config, model path and cache together.
+another model never reads old boxes (``frontend.detector_cache``, re-exported here); ``build_detector`` wires
+config, model path and cache together.
 The box geometry (letterbox, box mapping, IoU, NMS) is in ``frontend.detector_boxes``, re-exported here.
 """
 from __future__ import annotations
 
-import hashlib
-import re
 import warnings
 from pathlib import Path
 from typing import Iterable, Optional
@@ -35,12 +34,12 @@ import numpy as np
 
 from frontend.detector_boxes import boxes_from_input, letterbox_params, nms_per_class
 from frontend.detector_boxes import box_iou, boxes_to_input, nms_numpy  # noqa: F401  (re-exported)
-from frontend.dynamic.base import Detection, Detector
+from frontend.detector_cache import CachedDetector, cache_path_for, model_digest  # noqa: F401  (re-exported)
+from frontend.dynamic.base import Detection
 from frontend.model_lookup import (ENV_MODEL, MODEL_FILES, DetectorError,  # noqa: F401  (re-exported)
                                    ModelNotFoundError, default_model_dir, resolve_model_path)
 from frontend.model_lookup import howto as _howto
-from frontend.onnx_input_shape import with_input_size
-from slam.core.atomic_io import write_npz_atomic
+from frontend.onnx_input_shape import SIZE_FREE_MODELS, with_input_size
 from slam.core.dynamic_config import ClassGroups, DetectorConfig
 
 _INPUT_SIZE = {"yolox_nano": 416, "nanodet": 320}
@@ -49,9 +48,6 @@ _NANODET_MEAN = np.array([103.53, 116.28, 123.675], dtype=np.float32)
 _NANODET_STD = np.array([57.375, 57.12, 58.395], dtype=np.float32)
 _NANODET_BINS = 8
 _YOLOX_PAD = 114.0
-# Models whose graphs hold no input size of their own (frontend/onnx_input_shape.py): NanoDet-m's channel
-# shuffles reshape to fixed sizes, so it keeps its square input.
-_FITS_ANY_INPUT = {"yolox_nano"}
 
 
 class _InputGeometry:
@@ -95,7 +91,7 @@ class OnnxDetector:
                                 f"[1, 3, {self.size}, {self.size}] for '{kind}': is it the right file for "
                                 f"dynamic.detector.model? {_howto(kind)}")
         self._output_names = self._pick_outputs()
-        self.fit_input = bool(fit_input) and self.kind in _FITS_ANY_INPUT
+        self.fit_input = bool(fit_input) and self.kind in SIZE_FREE_MODELS
         self._square = _InputGeometry(self._session, self.size, self.size, self._make_priors(self.size, self.size))
         self._geometries: dict[tuple[int, int], _InputGeometry] = {}   # image (h, w) -> the network input
         self._inv_std = (1.0 / _NANODET_STD).astype(np.float32)
@@ -170,7 +166,7 @@ class OnnxDetector:
             return self._geometries[key]
         geometry = self._square
         if self.fit_input:
-            _, nw, nh, _, _ = letterbox_params(height, width, self.size, self.kind == "nanodet")
+            _, nw, nh, _, _ = letterbox_params(height, width, self.size, False)
             stride = max(_STRIDES)
             in_h, in_w = -(-nh // stride) * stride, -(-nw // stride) * stride
             if (in_h, in_w) != (self.size, self.size):
@@ -204,13 +200,10 @@ class OnnxDetector:
         elif bgr.shape[2] == 4:
             bgr = cv2.cvtColor(bgr, cv2.COLOR_BGRA2BGR)
         h, w = bgr.shape[:2]
-        centred = self.kind == "nanodet"
-        geometry = self.input_geometry(h, w)
-        r, nw, nh, left, top = letterbox_params(h, w, self.size, centred)
-        if centred:   # centred in the input actually used
-            left, top = (geometry.width - nw) // 2, (geometry.height - nh) // 2
+        # A fitted input (YOLOX only: SIZE_FREE_MODELS) holds the image where the square does, at its top left.
+        r, nw, nh, left, top = letterbox_params(h, w, self.size, self.kind == "nanodet")
         resized = cv2.resize(bgr, (nw, nh), interpolation=cv2.INTER_LINEAR)
-        blob = geometry.blob
+        blob = self.input_geometry(h, w).blob
         blob.fill(_YOLOX_PAD if self.kind == "yolox_nano" else 0.0)   # NanoDet: 0 after normalisation
         for c in range(3):   # write each channel straight into the planar input
             plane = blob[0, c, top:top + nh, left:left + nw]
@@ -238,7 +231,7 @@ class OnnxDetector:
         """Like ``detect`` but as arrays: boxes (N,4) float64 x0 y0 x1 y1, scores (N,), class ids (N,)."""
         h, w = bgr.shape[:2]
         blob, r, left, top = self.preprocess(bgr)
-        geometry = self.input_geometry(h, w)
+        geometry = self.input_geometry(h, w)          # the one preprocess filled: a dict lookup
         outputs = geometry.session.run(self._output_names, {self._input_name: blob})
         if self.kind == "yolox_nano":
             # Threshold on the objectness first: the score is obj*cls <= obj, so this is exact and
@@ -280,136 +273,6 @@ class OnnxDetector:
         return (f"OnnxDetector(kind={self.kind!r}, path={str(self.model_path)!r}, "
                 f"score_threshold={self.score_threshold}, nms_iou={self.nms_iou}, threads={self.threads}, "
                 f"fit_input={self.fit_input})")
-
-
-# --------------------------------------------------------------------------------------------
-# Cache
-
-
-def _ts_key(timestamp: float) -> str:
-    return "%.6f" % float(timestamp)
-
-
-_DIGESTS: dict[tuple[str, int, int], str] = {}   # (resolved path, mtime_ns, size) -> sha256 hex
-
-
-def model_digest(model_path) -> str:
-    """sha256 (hex) of a model file's content. The model's kind and settings do not identify its boxes
-    (a re-exported or retrained file keeps its name), its bytes do. Cached by path, mtime and size, so
-    a run hashes its model once and a replaced file is hashed again."""
-    path = Path(model_path).expanduser().resolve()
-    if not path.is_file():
-        raise DetectorError(f"detector model file not found: {path} (needed to key the detection cache)")
-    key = (str(path), path.stat().st_mtime_ns, path.stat().st_size)
-    if key not in _DIGESTS:
-        digest = hashlib.sha256()
-        with open(path, "rb") as handle:
-            for chunk in iter(lambda: handle.read(1 << 20), b""):
-                digest.update(chunk)
-        _DIGESTS[key] = digest.hexdigest()
-    return _DIGESTS[key]
-
-
-def cache_path_for(cache_dir, sequence_name: str, cfg: DetectorConfig,
-                   class_filter: Optional[Iterable[int]] = None, model_path=None) -> Path:
-    """``<cache_dir>/<sequence>__<model>_m<sha256[:16]>_s<score>_n<nms>[_c<classes hash>].npz``: the model
-    file's content (``model_path``, default ``resolve_model_path(cfg)``) and the settings that change the
-    boxes are part of the name, so a different model or setting never shares a cache."""
-    seq = re.sub(r"[^A-Za-z0-9_.-]+", "_", sequence_name.strip()).strip("._") or "sequence"
-    digest = model_digest(resolve_model_path(cfg) if model_path is None else model_path)
-    name = f"{seq}__{cfg.model}_m{digest[:16]}_s{cfg.score_threshold:.3f}_n{cfg.nms_iou:.3f}"
-    if cfg.fit_input and cfg.model in _FITS_ANY_INPUT:
-        name += "_fit"       # the boxes of the fitted input differ a little near the bottom edge
-    if class_filter is not None:
-        ids = ",".join(str(c) for c in sorted(set(int(c) for c in class_filter)))
-        name += "_c" + hashlib.sha1(ids.encode()).hexdigest()[:8]
-    return Path(cache_dir).expanduser() / f"{name}.npz"
-
-
-class CachedDetector:
-    """Detections per frame, keyed by the timestamp ('%.6f'), backed by a compressed ``.npz``.
-
-    Loads the file on construction when present (a corrupt file is reported with a warning and
-    ignored: the boxes are recomputed and the file rewritten on ``save``). ``save()`` writes
-    atomically (temporary file in the same folder, then ``os.replace``) and only when something new
-    was computed. Frames must have distinct timestamps. With ``model_sha256`` (``model_digest(path)``)
-    the file records it, and a file recorded with another model is treated like a corrupt one.
-    """
-
-    def __init__(self, inner: Detector, cache_file, model_sha256: Optional[str] = None):
-        self.inner = inner
-        self.cache_file = Path(cache_file)
-        self.model_sha256 = model_sha256
-        self._entries: dict[str, np.ndarray] = {}   # key -> (N,6) x0 y0 x1 y1 score class
-        self._dirty = False
-        self.hits = 0
-        self.misses = 0
-        self._load()
-
-    def _load(self) -> None:
-        if not self.cache_file.exists():
-            return
-        try:
-            with np.load(self.cache_file, allow_pickle=False) as data:
-                keys = data["keys"]
-                counts = data["counts"].astype(np.int64)
-                rows = data["rows"].astype(np.float64)
-                stored = str(data["model_sha256"]) if "model_sha256" in data.files else None
-            if self.model_sha256 is not None and stored is not None and stored != self.model_sha256:
-                raise ValueError(f"made with another model file (sha256 {stored[:16]}..., this model's is "
-                                 f"{self.model_sha256[:16]}...)")
-            if keys.ndim != 1 or counts.shape != keys.shape or rows.ndim != 2 or rows.shape[1] != 6 \
-                    or int(counts.sum()) != rows.shape[0] or np.any(counts < 0):
-                raise ValueError("inconsistent arrays")
-            ends = np.cumsum(counts)
-            entries = {}
-            for key, end, n in zip(keys.tolist(), ends.tolist(), counts.tolist()):
-                entries[str(key)] = rows[end - n:end]
-            self._entries = entries
-        except Exception as exc:  # any unreadable file: recompute rather than crash
-            warnings.warn(f"detection cache {self.cache_file} is unreadable ({type(exc).__name__}: {exc}); "
-                          f"ignoring it, detections will be recomputed and the file rewritten", RuntimeWarning,
-                          stacklevel=3)
-            self._entries = {}
-            self._dirty = True
-
-    def __len__(self) -> int:
-        return len(self._entries)
-
-    def __contains__(self, timestamp: float) -> bool:
-        return _ts_key(timestamp) in self._entries
-
-    def detect(self, bgr: np.ndarray, timestamp: float = 0.0) -> list[Detection]:
-        key = _ts_key(timestamp)
-        rows = self._entries.get(key)
-        if rows is None:
-            self.misses += 1
-            dets = list(self.inner.detect(bgr, timestamp))
-            rows = np.array([[d.x0, d.y0, d.x1, d.y1, d.score, d.class_id] for d in dets],
-                            dtype=np.float64).reshape(-1, 6)
-            self._entries[key] = rows
-            self._dirty = True
-            return dets
-        self.hits += 1
-        return [Detection(float(r[0]), float(r[1]), float(r[2]), float(r[3]), int(r[5]), float(r[4])) for r in rows]
-
-    def save(self) -> None:
-        if not self._dirty:
-            return
-        keys = sorted(self._entries)
-        counts = np.array([len(self._entries[k]) for k in keys], dtype=np.int64)
-        rows = (np.concatenate([self._entries[k] for k in keys], axis=0) if keys else np.zeros((0, 6)))
-        digest = {} if self.model_sha256 is None else {"model_sha256": np.array(self.model_sha256)}
-        write_npz_atomic(self.cache_file, keys=np.array(keys, dtype=np.str_), counts=counts,
-                         rows=rows.astype(np.float64), **digest)
-        self._dirty = False
-
-    def close(self) -> None:
-        self.save()
-        self.inner.close()
-
-    def __repr__(self) -> str:
-        return f"CachedDetector({self.inner!r}, cache_file={str(self.cache_file)!r}, entries={len(self)})"
 
 
 # --------------------------------------------------------------------------------------------

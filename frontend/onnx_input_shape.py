@@ -25,6 +25,10 @@ _DIM_VALUE = 1
 
 _VARINT, _FIXED64, _BYTES, _FIXED32 = 0, 1, 2, 5
 
+# The detector models whose graphs hold no input size of their own: YOLOX-Nano (above). NanoDet-m's channel
+# shuffles reshape to fixed sizes, so it keeps its square input.
+SIZE_FREE_MODELS = frozenset({"yolox_nano"})
+
 
 class OnnxRewriteError(ValueError):
     """The bytes are not the model this expects (not a protobuf of that layout, no 4-D first input)."""

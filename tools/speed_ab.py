@@ -75,15 +75,21 @@ def _spread(values: list[float]) -> str:
     return f"{(max(values) - min(values)) / np.mean(values):.1%}" if len(values) > 1 else "–"
 
 
+def _run_in(tree: Path, args: list[str]) -> None:
+    """``python args...`` with ``tree``'s code first on the path, in that folder; a failure raises with its
+    command and the end of its error output."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    cmd = [sys.executable, *args]
+    proc = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
+
+
 def _run_benchmark(tree: Path, sequence: Path, output: Path,
                    passthrough: list[str]) -> tuple[float, float, float, bytes]:
     """``tree``'s tools/benchmark.py on one sequence in its own process (its own code first on the path);
     (whole-run ms/frame, CPU ms/frame, ATE, trajectory bytes)."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
-    cmd = [sys.executable, str(tree / "tools" / "benchmark.py"), str(sequence), "-o", str(output), *passthrough]
-    proc = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
+    _run_in(tree, [str(tree / "tools" / "benchmark.py"), str(sequence), "-o", str(output), *passthrough])
     row = json.loads((output / "benchmark.json").read_text())[0]
     cpu_ms = 1e3 * sum(row.get("cpu_s", {}).values()) / max(row["frames"], 1)
     trajectory = next(output.glob("*_run0/trajectory.txt")).read_bytes()
@@ -93,12 +99,7 @@ def _run_benchmark(tree: Path, sequence: Path, output: Path,
 def _warm_up(tree: Path, sequence: Path, output: Path, passthrough: list[str]) -> None:
     """A short untimed run of ``tree`` on ``sequence`` (40 frames): a fresh worktree compiles its numba kernels
     on its first run (~20-30 s, once), which must not land in the first timed round."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
-    cmd = [sys.executable, "-m", "slam.cli", "run", str(sequence), "-q", "--max-frames", "40", "-o", str(output),
-           *passthrough]
-    proc = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
+    _run_in(tree, ["-m", "slam.cli", "run", str(sequence), "-q", "--max-frames", "40", "-o", str(output), *passthrough])
 
 
 def _checkout(revision: str) -> Path:
