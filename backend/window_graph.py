@@ -36,6 +36,7 @@ from slam.core.config import BackendConfig
 from slam.core.geometry import relative_pose_residual
 from slam.core.timing import thread_cpu_ms
 from backend.factors import BackendError, BackendParams, FactorBuilder, StereoCalibration, pose3
+from backend.window_index import GrowingRows, ObservationIndex, ranked_by_count
 from backend.window_loops import LoopCorrection
 
 
@@ -78,35 +79,6 @@ class WindowParams:
                    essential_min_shared=cfg.essential_min_shared, max_fixed_keyframes=cfg.window_fixed_keyframes)
 
 
-class _GrowingRows:
-    """ids -> rows of a numpy array that grows by doubling (estimates kept as arrays, not dicts)."""
-
-    def __init__(self, shape: tuple[int, ...]):
-        self.slot: dict[int, int] = {}
-        self.ids = np.zeros(64, np.int64)
-        self.values = np.zeros((64,) + shape)
-        self._order: Optional[np.ndarray] = None
-
-    def __len__(self) -> int:
-        return len(self.slot)
-
-    def add(self, key: int, value: np.ndarray) -> None:
-        n = len(self.slot)
-        if n == len(self.ids):
-            self.ids = np.concatenate([self.ids, np.zeros(n, np.int64)])
-            self.values = np.concatenate([self.values, np.zeros_like(self.values)])
-        self.slot[key] = n
-        self.ids[n] = key
-        self.values[n] = value
-        self._order = None
-
-    def sorted(self) -> tuple[np.ndarray, np.ndarray]:
-        n = len(self.slot)
-        if self._order is None:
-            self._order = np.argsort(self.ids[:n], kind="stable")
-        return self.ids[:n][self._order].copy(), self.values[:n][self._order].copy()
-
-
 class LocalWindowBackend(LoopCorrection):
     def __init__(self, params: BackendParams, calibration: StereoCalibration,
                  window: Optional[WindowParams] = None):
@@ -114,13 +86,14 @@ class LocalWindowBackend(LoopCorrection):
         self.calibration = calibration
         self.window = window or WindowParams()
         self._factors = FactorBuilder(params, calibration)
-        self._poses = _GrowingRows((4, 4))
-        self._points = _GrowingRows((3,))
+        self._poses = GrowingRows((4, 4))
+        self._points = GrowingRows((3,))
         self._live: dict[int, gtsam.NonlinearFactor] = {}      # handle -> factor
-        self._obs_ends: dict[int, tuple[int, int]] = {}         # observation handle -> (kf, lm)
-        self._kf_obs: dict[int, list[int]] = {}                 # may hold removed handles: filter by _live
-        self._lm_obs: dict[int, list[int]] = {}
-        self._point_ref = _GrowingRows(())   # per landmark slot: pose slot of its first observer, -1 none
+        self._obs_ends: dict[int, tuple[int, int]] = {}         # live observation handle -> (kf, lm)
+        self._obs = ObservationIndex()                          # the same as arrays, for choosing windows
+        self._kf_obs = self._obs.by_kf                          # may hold removed handles: filter by _live
+        self._lm_obs = self._obs.by_lm
+        self._point_ref = GrowingRows(())   # per landmark slot: pose slot of its first observer, -1 none
         self._span_start: Optional[int] = None  # oldest keyframe a relative factor added/removed touches
         self._added_relative: list[int] = []     # relative factors added / removed since the last update
         self._removed_relative: list[int] = []
@@ -170,8 +143,7 @@ class LocalWindowBackend(LoopCorrection):
         self._require(kf_id, lm_id)
         handle = self._add(self._factors.observation(kf_id, lm_id, uv, depth, level_scale, dynamic_prob))
         self._obs_ends[handle] = (kf_id, lm_id)
-        self._kf_obs[kf_id].append(handle)
-        self._lm_obs[lm_id].append(handle)
+        self._obs.add(handle, kf_id, lm_id)
         slot = self._points.slot[lm_id]
         if self._point_ref.values[slot] < 0:
             self._point_ref.values[slot] = self._poses.slot[kf_id]
@@ -204,6 +176,7 @@ class LocalWindowBackend(LoopCorrection):
         unknown = [h for h in handles if h not in self._live]
         if unknown:
             raise BackendError(f"unknown factor handle(s) {unknown} (already removed?)")
+        self._obs.remove(handles)
         for h in handles:
             del self._live[h]
             self._obs_ends.pop(h, None)
@@ -259,24 +232,22 @@ class LocalWindowBackend(LoopCorrection):
     def _window(self, focus: int, new: list[int]) -> set[int]:
         """The focus keyframe and its most covisible keyframes (shared graph landmarks), plus any other
         keyframe added since the last update."""
-        counts: dict[int, int] = {}
-        for lm in {self._obs_ends[h][1] for h in self._kf_obs[focus] if h in self._obs_ends}:
-            for kf in {self._obs_ends[h][0] for h in self._recent_observations(lm)}:
-                counts[kf] = counts.get(kf, 0) + 1
-        counts.pop(focus, None)
-        ranked = sorted(counts, key=lambda k: (-counts[k], -k))[: self.window.window_keyframes - 1]
-        window = {focus, *ranked, *new}
+        obs = self._obs
+        landmarks = np.unique(obs.lm[obs.of_keyframes([focus])]).tolist()
+        seen = self._recent_observations(landmarks)
+        pairs = np.unique(np.stack([obs.lm[seen], obs.kf[seen]], axis=1), axis=0)   # each landmark's observers
+        observers = pairs[:, 1]
+        ranked = ranked_by_count(observers[observers != focus], self.window.window_keyframes - 1)
+        window = {focus, *ranked.tolist(), *new}
         for h in self._kf_relative[focus]:     # the previous keyframe, even with no shared landmark yet
             if h in self._relative and len(window) < self.window.window_keyframes:
                 a, b, _ = self._relative[h]
                 window.add(a if b == focus else b)
         return window
 
-    def _recent_observations(self, lm: int) -> list[int]:
-        """The landmark's live observations by its latest observers only: a place seen on every lap of a
-        long run gathers observations without end, and a window needs only the freshest to hold it."""
-        cap = 2 * (self.window.window_keyframes + self.window.max_fixed_keyframes)
-        return [h for h in self._lm_obs[lm][-cap:] if h in self._obs_ends]
+    def _recent_observations(self, landmarks: list[int]) -> np.ndarray:
+        """The landmarks' live observations by their latest observers only (``ObservationIndex.recent``)."""
+        return self._obs.recent(landmarks, 2 * (self.window.window_keyframes + self.window.max_fixed_keyframes))
 
     def _adjust(self, window: set[int], iterations: Optional[int] = None, relative_tol: float = 1e-5) -> None:
         """Bundle-adjust the keyframes of ``window`` and the landmarks they see, held by the keyframes
@@ -293,21 +264,18 @@ class LocalWindowBackend(LoopCorrection):
 
     def _window_problem(self, window: set[int]) -> tuple[set[int], set[int], list[int], set[int]]:
         """(the keyframes to adjust, the fixed keyframes that hold them, the landmarks, the factor handles)."""
-        handles = {h for k in window for h in self._kf_obs[k] if h in self._obs_ends}
-        landmarks = sorted({self._obs_ends[h][1] for h in handles})
-        outside: dict[int, list[int]] = {}    # keyframe outside the window -> its observations of window landmarks
-        for lm in landmarks:
-            for h in self._recent_observations(lm):
-                kf = self._obs_ends[h][0]
-                if kf not in window:
-                    outside.setdefault(kf, []).append(h)
-        handles.update(self._lm_prior[lm] for lm in landmarks if lm in self._lm_prior)
+        obs = self._obs
+        own = obs.of_keyframes(window)
+        landmarks = np.unique(obs.lm[own]).tolist()
+        seen = self._recent_observations(landmarks)
+        outside = seen[~np.isin(obs.kf[seen], np.fromiter(window, np.int64))]   # by keyframes outside the window
         # The fixed keyframes that see most of the window's landmarks hold it; a cap keeps the cost
         # flat where a place is revisited many times (its landmarks are seen by ever more keyframes).
-        ranked = sorted(outside, key=lambda k: (-len(outside[k]), -k))[: self.window.max_fixed_keyframes]
-        fixed: set[int] = set(ranked)
-        for kf in ranked:
-            handles.update(outside[kf])
+        ranked = ranked_by_count(obs.kf[outside], self.window.max_fixed_keyframes)
+        fixed: set[int] = set(ranked.tolist())
+        handles = set(own.tolist())
+        handles.update(outside[np.isin(obs.kf[outside], ranked)].tolist())
+        handles.update(self._lm_prior[lm] for lm in landmarks if lm in self._lm_prior)
         for k in window:
             for h in self._kf_relative[k]:
                 if h in self._relative:
@@ -327,21 +295,27 @@ class LocalWindowBackend(LoopCorrection):
         """The factors of ``handles``, a tight prior on every fixed keyframe, the current estimates as the
         starting point, and the elimination order."""
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        add, live = graph.add, self._live
         for h in sorted(handles):
-            graph.add(self._live[h])
+            add(live[h])
         noise = gtsam.noiseModel.Isotropic.Sigma(6, self.window.fixed_sigma)
         for k in sorted(window | fixed):
             pose = pose3(self._poses.values[self._poses.slot[k]])
             values.insert(X(k), pose)
             if k in fixed:
                 graph.add(gtsam.PriorFactorPose3(X(k), pose, noise))
-        for lm in landmarks:
-            values.insert(L(lm), gtsam.Point3(*self._points.values[self._points.slot[lm]]))
+        keys = [L(lm) for lm in landmarks]
+        slot = self._points.slot
+        points = self._points.values[np.fromiter((slot[lm] for lm in landmarks), np.int64, len(landmarks))]
+        insert = values.insert
+        for key, xyz in zip(keys, points):
+            insert(key, xyz)
         # Landmarks first, then poses: the Schur-complement order of bundle adjustment (measured 30 ms
         # against COLAMD's 52 ms for the linear solve of 12 keyframes and 2,500 landmarks).
         ordering = gtsam.Ordering()
-        for lm in landmarks:
-            ordering.push_back(L(lm))
+        push = ordering.push_back
+        for key in keys:
+            push(key)
         for k in sorted(window | fixed):
             ordering.push_back(X(k))
         return graph, values, ordering
