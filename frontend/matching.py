@@ -1,8 +1,8 @@
 """Descriptor matching: by projection into the current frame, and brute force with a ratio test.
 
-Both are vectorised: candidate pairs come from a k-d tree in one call, Hamming distances from a
-popcount of the XORed descriptors (``slam.core.descriptors``), and "best per map point" / "one map point per
-keypoint" are resolved by sorting rather than by Python loops.
+Candidate pairs come from a k-d tree in one call; by projection, the tests, Hamming distances and the choice of
+"best per map point" / "one map point per keypoint" are one compiled pass over the pairs
+(``frontend.matching_kernels``); brute force is OpenCV's matcher with the ratio test and the choice by sorting.
 """
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from frontend.matching_kernels import choose_projection_matches
 from slam.core.camera import PinholeCamera
-from slam.core.descriptors import hamming
+from slam.core.descriptors import descriptor_words
 from slam.core.frame import FeatureFrame, MapPoints
 
 @dataclass
@@ -59,44 +60,14 @@ def search_by_projection(frame: FeatureFrame, points: MapPoints, T_cw: np.ndarra
         cKDTree(frame.uv[kp_idx]), radius * point_scale[vis_idx].max(), output_type="ndarray")
     if len(pairs) == 0:
         return result
-    pi, ki, dist_px = vis_idx[pairs["i"]], kp_idx[pairs["j"]], pairs["v"]
-    # ORB-SLAM: the radius scales with the level the point was seen at, and the keypoint must lie
-    # on a neighbouring level of the pyramid.
-    ok = dist_px <= radius * point_scale[pi]
-    if has_octave:
-        ok &= np.abs(frame.octaves[ki] - points.octaves[pi]) <= max_level_gap
-    pi, ki = pi[ok], ki[ok]
-    if len(pi) == 0:
-        return result
-    ham = hamming(points.descriptors[pi], frame.descriptors[ki])
-    best, second = _best_two(pi, ham)
-    accept = ham[best] <= max_distance
-    # The ratio test only rejects when the runner-up lies on the same level (as in ORB-SLAM).
-    ambiguous = second >= 0
-    ambiguous[ambiguous] &= frame.octaves[ki[second[ambiguous]]] == frame.octaves[ki[best[ambiguous]]]
-    accept[ambiguous] &= ham[best][ambiguous] <= ratio * ham[second[ambiguous]]
-    best = best[accept]
-    # One point per keypoint: the lowest distance wins.
-    winners = best[first_per_group(ki[best], ham[best])]
-    result.keypoint_of_point[pi[winners]] = ki[winners]
-    result.distance[pi[winners]] = ham[winners]
+    # The radius and level tests, the distances, the ratio test and one point per keypoint in one compiled
+    # pass over the pairs, in the tree's order (ties resolve as stable sorts on it would).
+    point_octaves = points.octaves if has_octave else np.zeros(0, np.int64)
+    result.keypoint_of_point, result.distance = choose_projection_matches(
+        vis_idx[pairs["i"]], kp_idx[pairs["j"]], pairs["v"], float(radius), point_scale, point_octaves,
+        frame.octaves, has_octave, int(max_level_gap), descriptor_words(points.descriptors), descriptor_words(frame.descriptors),
+        int(max_distance), float(ratio))
     return result
-
-
-def _best_two(groups: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per group: index of the smallest key, and of the second smallest (-1 if none)."""
-    order = np.lexsort((keys, groups))
-    if len(order) == 0:
-        return order, order.copy()
-    g = groups[order]
-    is_first = np.r_[True, g[1:] != g[:-1]]
-    first_pos = np.flatnonzero(is_first)
-    second_pos = first_pos + 1
-    has_second = (second_pos < len(order))
-    has_second[has_second] &= ~is_first[second_pos[has_second]]
-    second = np.full(len(first_pos), -1)
-    second[has_second] = order[second_pos[has_second]]
-    return order[first_pos], second
 
 
 def match_brute_force(des_query: np.ndarray, des_train: np.ndarray, ratio: float,

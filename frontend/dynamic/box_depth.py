@@ -99,6 +99,7 @@ from frontend.dynamic.box_depth_segmentation import (box_pixels, cached_person_l
                                                      overlaps_enough, segment_box)
 from frontend.dynamic.box_depth_segmentation import (eq8_filter, nearest_valid,  # noqa: F401  (re-exported)
                                                      seed_points, side_distance)
+from slam.core.descriptors import descriptor_words
 from slam.core.dynamic_config import BoxDepthConfig, ClassGroups
 
 _MAX_HAMMING = 50            # descriptor distance cap for frame-to-frame matching (ORB-SLAM TH_LOW)
@@ -146,13 +147,8 @@ def match_descriptors(desc_a: np.ndarray, uv_a: np.ndarray, desc_b: np.ndarray, 
         cKDTree(np.asarray(uv_b, float)), radius, output_type="ndarray")
     if len(pairs) == 0:
         return np.zeros((0, 2), int)
-    return mutual_best(_words(desc_a), _words(desc_b), pairs["i"].astype(np.int64), pairs["j"].astype(np.int64),
+    return mutual_best(descriptor_words(desc_a), descriptor_words(desc_b), pairs["i"].astype(np.int64), pairs["j"].astype(np.int64),
                        int(max_distance))
-
-
-def _words(desc: np.ndarray) -> np.ndarray:
-    """ORB descriptors (N, 32) uint8 as (N, 4) uint64 words for the kernel's bit count."""
-    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
 
 
 # --------------------------------------------------------------------------------------------

@@ -18,3 +18,9 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         words = np.ascontiguousarray(x).view(np.uint64)
         return np.bitwise_count(words).sum(axis=-1, dtype=np.int32)
     return _POPCOUNT[x].sum(axis=-1, dtype=np.int32)
+
+
+def descriptor_words(desc: np.ndarray) -> np.ndarray:
+    """ORB descriptors (N, 32) uint8 as (N, 4) uint64 words, for the compiled kernels' bit counts (no copy of
+    a contiguous array)."""
+    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
