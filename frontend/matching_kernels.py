@@ -18,7 +18,8 @@ _JIT = {"nogil": True, "cache": True}
 
 @numba.njit(**_JIT)
 def _popcount64(x):
-    """Set bits of a uint64 (the SWAR count; exact)."""
+    """Set bits of a uint64 (the SWAR count; exact). This module's own copy of box_depth_kernels' count: a cached
+    kernel may call compiled functions of its own file only (tests/test_compiled_kernels.py)."""
     x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
     x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
     x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
