@@ -89,10 +89,7 @@ class LocalWindowBackend(LoopCorrection):
         self._poses = GrowingRows((4, 4))
         self._points = GrowingRows((3,))
         self._live: dict[int, gtsam.NonlinearFactor] = {}      # handle -> factor
-        self._obs_ends: dict[int, tuple[int, int]] = {}         # live observation handle -> (kf, lm)
-        self._obs = ObservationIndex()                          # the same as arrays, for choosing windows
-        self._kf_obs = self._obs.by_kf                          # may hold removed handles: filter by _live
-        self._lm_obs = self._obs.by_lm
+        self._obs = ObservationIndex()                          # observation handles -> keyframe, landmark
         self._point_ref = GrowingRows(())   # per landmark slot: pose slot of its first observer, -1 none
         self._span_start: Optional[int] = None  # oldest keyframe a relative factor added/removed touches
         self._added_relative: list[int] = []     # relative factors added / removed since the last update
@@ -116,7 +113,8 @@ class LocalWindowBackend(LoopCorrection):
         if kf_id in self._poses.slot:
             raise BackendError(f"keyframe {kf_id} already exists")
         self._poses.add(kf_id, np.asarray(T_wc_guess, float))
-        self._kf_obs[kf_id], self._kf_relative[kf_id] = [], []
+        self._obs.add_keyframe(kf_id)
+        self._kf_relative[kf_id] = []
         if self._first is None:
             self._first = (kf_id, self._add(self._factors.first_pose_prior(kf_id, T_wc_guess)))
         self._new_keyframes.append(kf_id)
@@ -126,7 +124,7 @@ class LocalWindowBackend(LoopCorrection):
             raise BackendError(f"landmark {lm_id} already exists")
         self._points.add(lm_id, np.asarray(xyz_guess, float))
         self._point_ref.add(lm_id, -1)
-        self._lm_obs[lm_id] = []
+        self._obs.add_landmark(lm_id)
         prior = self._factors.landmark_prior(lm_id, xyz_guess)
         if prior is not None:
             self._lm_prior[lm_id] = self._add(prior)
@@ -142,7 +140,6 @@ class LocalWindowBackend(LoopCorrection):
                         dynamic_prob: float = 0.0) -> int:
         self._require(kf_id, lm_id)
         handle = self._add(self._factors.observation(kf_id, lm_id, uv, depth, level_scale, dynamic_prob))
-        self._obs_ends[handle] = (kf_id, lm_id)
         self._obs.add(handle, kf_id, lm_id)
         slot = self._points.slot[lm_id]
         if self._point_ref.values[slot] < 0:
@@ -179,7 +176,6 @@ class LocalWindowBackend(LoopCorrection):
         self._obs.remove(handles)
         for h in handles:
             del self._live[h]
-            self._obs_ends.pop(h, None)
             if h in self._relative:
                 self._touch_span(*self._relative.pop(h)[:2])
                 self._removed_relative.append(h)
@@ -271,10 +267,11 @@ class LocalWindowBackend(LoopCorrection):
         outside = seen[~np.isin(obs.kf[seen], np.fromiter(window, np.int64))]   # by keyframes outside the window
         # The fixed keyframes that see most of the window's landmarks hold it; a cap keeps the cost
         # flat where a place is revisited many times (its landmarks are seen by ever more keyframes).
-        ranked = ranked_by_count(obs.kf[outside], self.window.max_fixed_keyframes)
+        outside_kf = obs.kf[outside]
+        ranked = ranked_by_count(outside_kf, self.window.max_fixed_keyframes)
         fixed: set[int] = set(ranked.tolist())
         handles = set(own.tolist())
-        handles.update(outside[np.isin(obs.kf[outside], ranked)].tolist())
+        handles.update(outside[np.isin(outside_kf, ranked)].tolist())
         handles.update(self._lm_prior[lm] for lm in landmarks if lm in self._lm_prior)
         for k in window:
             for h in self._kf_relative[k]:

@@ -60,7 +60,14 @@ class ObservationIndex:
         self.by_kf: dict[int, list[int]] = {}
         self.by_lm: dict[int, list[int]] = {}
 
+    def add_keyframe(self, kf_id: int) -> None:
+        self.by_kf[kf_id] = []
+
+    def add_landmark(self, lm_id: int) -> None:
+        self.by_lm[lm_id] = []
+
     def add(self, handle: int, kf_id: int, lm_id: int) -> None:
+        """A new observation factor (its keyframe and landmark added before)."""
         if handle >= len(self.kf):
             grow = max(handle + 1, 2 * len(self.kf)) - len(self.kf)
             self.kf = np.concatenate([self.kf, np.full(grow, -1, np.int64)])
@@ -78,6 +85,11 @@ class ObservationIndex:
     def of_keyframes(self, kf_ids: Iterable[int]) -> np.ndarray:
         """The live observation handles of these keyframes."""
         handles = np.fromiter(chain.from_iterable(self.by_kf[k] for k in kf_ids), np.int64)
+        return handles[self.live[handles]]
+
+    def of_landmarks(self, lm_ids: Iterable[int]) -> np.ndarray:
+        """The live observation handles of these landmarks."""
+        handles = np.fromiter(chain.from_iterable(self.by_lm[lm] for lm in lm_ids), np.int64)
         return handles[self.live[handles]]
 
     def recent(self, lm_ids: Sequence[int], cap: int) -> np.ndarray:

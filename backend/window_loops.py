@@ -109,9 +109,9 @@ class LoopCorrection:
         landmarks (a sparse keyframe x landmark product over the span's observations only)."""
         order = sorted(span)
         edges = {(a, b) for a, b in zip(order[:-1], order[1:])}
-        span_landmarks = {self._obs_ends[h][1] for k in span for h in self._kf_obs[k] if h in self._obs_ends}
-        ends = np.array([self._obs_ends[h] for lm in span_landmarks for h in self._lm_obs[lm] if h in self._obs_ends],
-                        np.int64).reshape(-1, 2)
+        obs = self._obs
+        handles = obs.of_landmarks(np.unique(obs.lm[obs.of_keyframes(span)]).tolist())
+        ends = np.stack([obs.kf[handles], obs.lm[handles]], axis=1)     # (keyframe, landmark) per observation
         if len(ends):
             kf_codes, kf_index = np.unique(ends[:, 0], return_inverse=True)
             lm_codes, lm_index = np.unique(ends[:, 1], return_inverse=True)

@@ -65,8 +65,8 @@ def search_by_projection(frame: FeatureFrame, points: MapPoints, T_cw: np.ndarra
     point_octaves = points.octaves if has_octave else np.zeros(0, np.int64)
     result.keypoint_of_point, result.distance = choose_projection_matches(
         vis_idx[pairs["i"]], kp_idx[pairs["j"]], pairs["v"], float(radius), point_scale, point_octaves,
-        frame.octaves, has_octave, int(max_level_gap), descriptor_words(points.descriptors), descriptor_words(frame.descriptors),
-        int(max_distance), float(ratio))
+        frame.octaves, has_octave, int(max_level_gap), descriptor_words(points.descriptors),
+        descriptor_words(frame.descriptors), int(max_distance), float(ratio))
     return result
 
 

@@ -24,9 +24,9 @@ def test_ranked_by_count_is_the_sorted_counts_with_newer_first_on_ties():
 def test_recent_keeps_the_last_cap_observations_then_the_live_ones():
     index = ObservationIndex()
     for kf in range(8):
-        index.by_kf[kf] = []
+        index.add_keyframe(kf)
     for lm in range(3):
-        index.by_lm[lm] = []
+        index.add_landmark(lm)
     rng = np.random.default_rng(0)
     handle = 5                              # handles count every factor: observations need not start at 0
     for _ in range(40):
@@ -39,18 +39,28 @@ def test_recent_keeps_the_last_cap_observations_then_the_live_ones():
         assert index.recent([2, 0], cap).tolist() == expected
     live = [h for k in (3, 1) for h in index.by_kf[k] if h not in removed]
     assert sorted(index.of_keyframes([3, 1]).tolist()) == sorted(live)
+    assert index.of_landmarks([1]).tolist() == [h for h in index.by_lm[1] if h not in removed]
+
+
+def _dicts(graph: LocalWindowBackend):
+    """What the graph held before the arrays: live observation handle -> (kf, lm), and each keyframe's and
+    landmark's observation handles in the order they were added."""
+    obs = graph._obs
+    ends = {h: (int(obs.kf[h]), int(obs.lm[h])) for h in np.flatnonzero(obs.live).tolist()}
+    return ends, obs.by_kf, obs.by_lm
 
 
 def _old_window(graph: LocalWindowBackend, focus: int, new: list[int]) -> set[int]:
     """``LocalWindowBackend._window`` before the arrays (dicts and sets)."""
     cap = 2 * (graph.window.window_keyframes + graph.window.max_fixed_keyframes)
+    ends, kf_obs, lm_obs = _dicts(graph)
 
     def recent(lm):
-        return [h for h in graph._lm_obs[lm][-cap:] if h in graph._obs_ends]
+        return [h for h in lm_obs[lm][-cap:] if h in ends]
 
     counts: dict[int, int] = {}
-    for lm in {graph._obs_ends[h][1] for h in graph._kf_obs[focus] if h in graph._obs_ends}:
-        for kf in {graph._obs_ends[h][0] for h in recent(lm)}:
+    for lm in {ends[h][1] for h in kf_obs[focus] if h in ends}:
+        for kf in {ends[h][0] for h in recent(lm)}:
             counts[kf] = counts.get(kf, 0) + 1
     counts.pop(focus, None)
     ranked = sorted(counts, key=lambda k: (-counts[k], -k))[: graph.window.window_keyframes - 1]
@@ -65,12 +75,13 @@ def _old_window(graph: LocalWindowBackend, focus: int, new: list[int]) -> set[in
 def _old_problem(graph: LocalWindowBackend, window: set[int]):
     """``LocalWindowBackend._window_problem`` before the arrays."""
     cap = 2 * (graph.window.window_keyframes + graph.window.max_fixed_keyframes)
-    handles = {h for k in window for h in graph._kf_obs[k] if h in graph._obs_ends}
-    landmarks = sorted({graph._obs_ends[h][1] for h in handles})
+    ends, kf_obs, lm_obs = _dicts(graph)
+    handles = {h for k in window for h in kf_obs[k] if h in ends}
+    landmarks = sorted({ends[h][1] for h in handles})
     outside: dict[int, list[int]] = {}
     for lm in landmarks:
-        for h in [h for h in graph._lm_obs[lm][-cap:] if h in graph._obs_ends]:
-            kf = graph._obs_ends[h][0]
+        for h in [h for h in lm_obs[lm][-cap:] if h in ends]:
+            kf = ends[h][0]
             if kf not in window:
                 outside.setdefault(kf, []).append(h)
     handles.update(graph._lm_prior[lm] for lm in landmarks if lm in graph._lm_prior)

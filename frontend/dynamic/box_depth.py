@@ -147,8 +147,8 @@ def match_descriptors(desc_a: np.ndarray, uv_a: np.ndarray, desc_b: np.ndarray, 
         cKDTree(np.asarray(uv_b, float)), radius, output_type="ndarray")
     if len(pairs) == 0:
         return np.zeros((0, 2), int)
-    return mutual_best(descriptor_words(desc_a), descriptor_words(desc_b), pairs["i"].astype(np.int64), pairs["j"].astype(np.int64),
-                       int(max_distance))
+    return mutual_best(descriptor_words(desc_a), descriptor_words(desc_b), pairs["i"].astype(np.int64),
+                       pairs["j"].astype(np.int64), int(max_distance))
 
 
 # --------------------------------------------------------------------------------------------
