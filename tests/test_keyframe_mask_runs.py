@@ -130,6 +130,7 @@ def test_the_runs_end_revisions_are_written_too(tmp_path):
     artifacts.on_frame(SimpleNamespace(is_keyframe=True), SimpleNamespace(index=3, depth=full), system)
     system.finish_keyframe_masks = lambda: [RevisedMask(3, 0.1, np.zeros(SHAPE, np.float32), full >= 0.5)]
     artifacts.finish(system)
+    artifacts.close()              # finish hands the writes to the writer thread; close waits for them
     assert not cv2.imread(str(tmp_path / MASK_DIR / f"{3:06d}.png"), cv2.IMREAD_UNCHANGED).any()
     assert cv2.imread(str(tmp_path / MASK_DIR / f"{3:06d}{STILL_SUFFIX}.png"), cv2.IMREAD_UNCHANGED).any()
 

@@ -56,7 +56,7 @@ class ProjectiveGrid:
         seen = (raw[:, 0] > -0.5) & (raw[:, 0] < width - 0.5) & (raw[:, 1] > -0.5) & (raw[:, 1] < height - 0.5)
         gc = np.clip(np.rint((raw[:, 0] - step // 2) / step), 0, self.gw - 1).astype(np.int64)
         gr = np.clip(np.rint((raw[:, 1] - step // 2) / step), 0, self.gh - 1).astype(np.int64)
-        self.cell = ((gr + radius) * self.pw + gc + radius).astype(np.int64)   # clamped: the border cell
+        self.cell = ((gr + radius) * self.pw + gc + radius).astype(np.int32)   # clamped: the border cell
         self.seen = seen
         dr, dc = np.meshgrid(np.arange(-radius, radius + 1), np.arange(-radius, radius + 1), indexing="ij")
         self.offsets = (dr * self.pw + dc).ravel()

@@ -82,6 +82,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple, Optional
 
 import cv2
+import numba
 import numpy as np
 
 from slam.core.camera import PinholeCamera
@@ -236,24 +237,13 @@ class FreeSpaceCheck:
         return bool(known.any())
 
     def _test(self, record: _Keyframe, ref: _Reference) -> tuple[np.ndarray, np.ndarray]:
-        """Per keyframe cell: whether ``ref`` can tell, and whether it saw the cell's space empty."""
+        """Per keyframe cell: whether ``ref`` can tell, and whether it saw the cell's space empty. The rotation
+        is numpy's product (the same points as before); the projection and the comparisons one compiled pass
+        (``_project_and_compare``: a dozen whole-array steps over ~19 k cells before, ~0.4 ms a call)."""
         p = record.world @ ref.T_cw[:3, :3].T + ref.T_cw[:3, 3]
-        gh, gw = ref.depth.shape
         cam = self.camera
-        front = p[:, 2] > 1e-6
-        zr = np.where(front, p[:, 2], 1.0)
-        col = np.rint((cam.fx * p[:, 0] / zr + cam.cx) / _STEP).astype(np.int64)
-        row = np.rint((cam.fy * p[:, 1] / zr + cam.cy) / _STEP).astype(np.int64)
-        inside = front & (col >= 0) & (col < gw) & (row >= 0) & (row < gh)
-        seen = np.full(len(p), _FAR, np.float32)
-        nearest = np.full(len(p), _FAR, np.float32)
-        seen[inside] = ref.depth[row[inside], col[inside]]
-        nearest[inside] = ref.nearest[row[inside], col[inside]]
-        margin = self._margin(seen.astype(float))
-        # Behind the other frame's surface: hidden from it, no evidence. In front of the nearest surface
-        # near where it lands: that space was empty then.
-        known = inside & (seen < _FAR) & (p[:, 2] <= seen + margin)
-        return known, known & (p[:, 2] < nearest - margin)
+        return _project_and_compare(p, ref.depth, ref.nearest, float(cam.fx), float(cam.fy), float(cam.cx),
+                                    float(cam.cy), _STEP, self.margin_m, _NOISE_COEFF)
 
     def _pixels(self, record: _Keyframe) -> Evidence:
         moving = np.zeros(record.valid.shape, np.uint8)
@@ -297,26 +287,11 @@ class FreeSpaceCheck:
     def _grow_along_surfaces(self, moving: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """``moving`` (grid bool) grown by ``_GROW_CELLS`` cells, each step only into a neighbour whose depth
         is within the test's margin of the moving cell's: the band the min filter leaves blind lies on the
-        surface that moved, not on the wall or desk beside it."""
+        surface that moved, not on the wall or desk beside it. A compiled loop (``_grow``): as whole-array
+        steps it was 48 shifted comparisons per step, ~0.6 ms a call."""
         tolerance = self._margin(np.nan_to_num(depth, nan=0.0))
-        grown = moving.copy()
-        h, w = grown.shape
-        padded_depth = np.pad(depth, 1, constant_values=np.nan)
-        for _ in range(_GROW_CELLS):
-            padded = np.pad(grown, 1)
-            added = np.zeros_like(grown)
-            for dy in (-1, 0, 1):
-                for dx in (-1, 0, 1):
-                    if dy or dx:
-                        near = padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
-                        near_depth = padded_depth[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
-                        with np.errstate(invalid="ignore"):      # NaN: no depth, never grown into
-                            added |= near & (np.abs(depth - near_depth) <= tolerance)
-            added &= ~grown
-            if not added.any():
-                break
-            grown |= added
-        return grown
+        return _grow(moving, np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(tolerance, np.float64),
+                     _GROW_CELLS)
 
     def _earlier(self, timestamp: float, lags_s: tuple[float, ...]) -> list[_Reference]:
         """Per lag, the remembered frame nearest ``timestamp - lag``, at least half the lag back."""
@@ -336,3 +311,75 @@ class FreeSpaceCheck:
             cam = self.camera
             self._rays = np.dstack([(cols - cam.cx) / cam.fx, (rows - cam.cy) / cam.fy, np.ones(shape)])
         return self._rays
+
+
+@numba.njit(nogil=True, cache=True)
+def _grow(moving, depth, tolerance, steps):
+    """``steps`` times: every cell with a grown 8-neighbour whose depth lies within the cell's ``tolerance``
+    of its own joins (a cell without depth, NaN, never joins nor passes it on); stops early when none does.
+    Only the last step's new cells are looked around: an older neighbour that did not take a cell in before
+    never will (the depths do not change)."""
+    h, w = moving.shape
+    grown = moving.copy()
+    front_r = np.empty(h * w, np.int64)
+    front_c = np.empty(h * w, np.int64)
+    n_front = 0
+    for r in range(h):
+        for c in range(w):
+            if grown[r, c]:
+                front_r[n_front], front_c[n_front] = r, c
+                n_front += 1
+    new_r = np.empty(h * w, np.int64)
+    new_c = np.empty(h * w, np.int64)
+    for _ in range(steps):
+        n_new = 0
+        for f in range(n_front):
+            fr, fc = front_r[f], front_c[f]
+            df = depth[fr, fc]
+            for dy in range(-1, 2):
+                r = fr + dy
+                if r < 0 or r >= h:
+                    continue
+                for dx in range(-1, 2):
+                    c = fc + dx
+                    if (dy == 0 and dx == 0) or c < 0 or c >= w or grown[r, c]:
+                        continue
+                    if abs(depth[r, c] - df) <= tolerance[r, c]:     # False for NaN on either side
+                        grown[r, c] = True          # joins at the end of this step: no cell looks at it now,
+                        new_r[n_new], new_c[n_new] = r, c   # since only the last step's cells are looked around
+                        n_new += 1
+        if n_new == 0:
+            break
+        front_r, new_r = new_r, front_r
+        front_c, new_c = new_c, front_c
+        n_front = n_new
+    return grown
+
+
+@numba.njit(nogil=True, cache=True)
+def _project_and_compare(p, depth, nearest, fx, fy, cx, cy, step, margin_m, noise_coeff):
+    """``FreeSpaceCheck._test`` per point of ``p`` (the other frame's camera): its grid cell in that frame;
+    known where it lies in front of the depth seen there or within the margin behind it (not hidden), moving
+    where it also lies in front of the nearest depth around by more than the margin."""
+    gh, gw = depth.shape
+    n = len(p)
+    known = np.zeros(n, np.bool_)
+    moving = np.zeros(n, np.bool_)
+    far = np.float32(_FAR)
+    for t in range(n):
+        z = p[t, 2]
+        if not z > 1e-6:
+            continue
+        col = np.int64(np.rint((fx * p[t, 0] / z + cx) / step))
+        row = np.int64(np.rint((fy * p[t, 1] / z + cy) / step))
+        if col < 0 or col >= gw or row < 0 or row >= gh:
+            continue
+        seen = depth[row, col]
+        if not seen < far:
+            continue
+        seen64 = np.float64(seen)
+        margin = margin_m + 3.0 * noise_coeff * seen64 ** 2
+        if z <= seen64 + margin:
+            known[t] = True
+            moving[t] = z < np.float64(nearest[row, col]) - margin
+    return known, moving

@@ -43,7 +43,7 @@ from frontend.dynamic import RevisedMask
 from frontend.dynamic.base import MethodOutput, keypoints_in_mask
 from frontend.dynamic.box_depth_segmentation import cached_person_layer, layer_fill
 from frontend.dynamic.free_space import Evidence
-from frontend.dynamic.fusion import fuse
+from frontend.dynamic.fusion import fuse_masks
 from frontend.dynamic.region_motion import PersonTrack
 
 Box = tuple[int, int, int, int]          # x0, y0, x1, y1 whole pixels
@@ -133,12 +133,12 @@ def fused_pixel_mask(outputs: dict[str, MethodOutput], mode: str, weights: list[
     masks, used = [], []
     for weight, out in zip(weights, outputs.values()):
         if out.mask is not None and np.shape(out.mask) == tuple(shape) and out.motion_measured:
-            masks.append(np.asarray(out.mask, np.float32).reshape(1, -1))
+            masks.append(np.asarray(out.mask, np.float32).reshape(-1))
             used.append(weight)
     if not masks:
         return None
     mode = "max" if mode == "single" else mode
-    return fuse(masks, used, mode, masks[0].shape[1]).reshape(shape).astype(np.float32)
+    return fuse_masks(masks, used, mode).reshape(shape)
 
 
 def still_region(shape: tuple[int, int], boxes: list[Box], still) -> Optional[np.ndarray]:
