@@ -156,9 +156,9 @@ select only that column (``_Rows``), instead of selecting every row's own middle
 (``python tools/cpr_timing.py --compare``: 150 / 150 Bonn frames identical), sub-poses 14.3 -> 9.7 ms and
 process 32.5 -> 25.4 ms (sums of stage medians; means of three alternating runs of ``python tools/cpr_timing.py
 --frames 150`` each, on a machine whose medians moved 26-39 ms between identical runs).
-Compiled kernels (2026-12-02, ``cpr_cloud_kernels`` and ``cpr_icp_kernels``: numba, the GIL released): the cloud,
-K-Means, the projective sub-pose ICP and the scores are loops over points doing the same arithmetic in the same
-order, so the masks are the numpy code's (``python tools/cpr_timing.py --compare``: 480 / 480 Bonn frames
+Compiled kernels (2026-12-02, ``cpr_cloud_kernels``, ``cpr_kmeans_kernels`` and ``cpr_icp_kernels``: numba, the GIL
+released): the cloud, K-Means, the projective sub-pose ICP and the scores are loops over points doing the same
+arithmetic in the same order, so the masks are the numpy code's (``python tools/cpr_timing.py --compare``: 480 / 480 Bonn frames
 identical; fr1/rpy 398 / 400, the other two differing in a few pixels from rounding) at half the time: process 23.2 -> 11.6 ms median on Bonn
 crowd (cloud 7.9 -> 2.9, K-Means 1.9 -> 1.1, target 0.9 -> 0.6, sub-poses 8.5 -> 4.0, correlation 2.8 -> 1.9),
 15.1 -> 7.1 ms on fr1/rpy (``python tools/cpr_timing.py [SEQ] --frames 480``, the two codes one after the

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from frontend.dynamic import cpr_icp_kernels as kernels
+from frontend.dynamic import cpr_kmeans_kernels as kmeans_kernels
 from frontend.dynamic.cpr_assoc import ProjectiveTarget
 from frontend.dynamic.cpr_cloud import Cloud
 from slam.core.dynamic_config import CprConfig
@@ -24,7 +25,7 @@ def cluster(xyz: np.ndarray, k: int, seed: int, iterations: int = 10) -> np.ndar
     """K-Means labels (k-means++, fixed seed); deterministic for the same input.
 
     ``scipy.cluster.vq.kmeans2(xyz, k, iter=iterations, minit="++", seed=default_rng(seed))`` bit for bit
-    (tests/test_cpr_vectorised.py), compiled (``cpr_icp_kernels.kmeans_labels``): the generator's draws are taken
+    (tests/test_cpr_vectorised.py), compiled (``cpr_kmeans_kernels.kmeans_labels``): the generator's draws are taken
     here in kmeans2's order (they do not depend on the data), the seeding and the Lloyd iterations there."""
     n = len(xyz)
     if n <= k:
@@ -32,7 +33,7 @@ def cluster(xyz: np.ndarray, k: int, seed: int, iterations: int = 10) -> np.ndar
     rng = np.random.default_rng(seed)
     first = int(rng.integers(n))
     uniforms = np.array([rng.uniform() for _ in range(k - 1)])
-    return kernels.kmeans_labels(np.ascontiguousarray(xyz, dtype=np.float64), int(k), first, uniforms,
+    return kmeans_kernels.kmeans_labels(np.ascontiguousarray(xyz, dtype=np.float64), int(k), first, uniforms,
                                  int(iterations))
 
 
