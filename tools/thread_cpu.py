@@ -4,6 +4,7 @@
     python tools/thread_cpu.py SEQ_DIR frontend.dynamic.free_space:FreeSpaceCheck._test \\
         frontend.dynamic.keyframe_masks:fused_pixel_mask slam.runtime.tracking_loop:TrackingLoop._add_keyframe
     python tools/thread_cpu.py SEQ_DIR MODULE:FUNCTION ... --set backend.worker_process=false
+    python tools/thread_cpu.py SEQ_DIR MODULE:FUNCTION ... --tree ../before     # another checkout's code
 
 Each target (``module:qualified.name``) is wrapped for the run and charged the thread CPU
 (``time.thread_time``) of its calls on the main thread, the one that tracks; calls on other threads (cpr's,
@@ -25,7 +26,6 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 
 def wrap(target: str, spent: dict, calls: Counter, thread_id: int) -> None:
@@ -60,7 +60,10 @@ def main(argv=None) -> int:
     parser.add_argument("targets", nargs="+", metavar="MODULE:FUNCTION")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--output", type=Path, default=Path("results/thread_cpu"))
+    parser.add_argument("--tree", type=Path, default=REPO,
+                        help="the checkout whose code runs (default: this one; e.g. a worktree of a commit before)")
     args = parser.parse_args(argv)
+    sys.path.insert(0, str(args.tree.resolve()))
 
     from slam.datasets import TumDataset
     from slam.run.pipeline import Pipeline
