@@ -42,7 +42,7 @@ from typing import Optional
 import numpy as np
 
 from backend.map_store import SlamMap
-from backend.place_recognition import KeyframeIndex, Vocabulary, score
+from backend.place_recognition import BowVector, KeyframeIndex, Vocabulary, score
 from backend.pnp_verification import PnpParams, solve_pnp
 from slam.core.geometry import invert
 
@@ -104,8 +104,9 @@ class LoopDetector:
         static = self._static_mask(feats)
         desc = feats.descriptors[static]
         covisible = slam_map.covisible_keyframes(kf_id, self.min_covisible_shared, limit=slam_map.num_keyframes)
+        bow = self.vocabulary.bow(desc)     # once: scored, queried and indexed alike
         try:
-            candidates = self._candidates(slam_map, kf_id, desc, covisible)
+            candidates = self._candidates(slam_map, kf_id, bow, covisible)
             self.last_candidates = candidates
             consistent = self._consistent(slam_map, candidates)
             self.last_consistent = [c for c, _ in consistent]
@@ -115,7 +116,7 @@ class LoopDetector:
                     return loop
             return None
         finally:
-            self.index.add(kf_id, desc)
+            self.index.add_bow(kf_id, bow)
 
     def index_keyframe(self, slam_map: SlamMap, kf_id: int) -> None:
         """Add a keyframe's static words to the index without looking for a loop."""
@@ -135,18 +136,15 @@ class LoopDetector:
         prob = np.nan_to_num(np.asarray(feats.dynamic_prob, np.float64), nan=1.0)
         return prob < self.dynamic_threshold
 
-    def _candidates(self, slam_map: SlamMap, kf_id: int, desc: np.ndarray,
+    def _candidates(self, slam_map: SlamMap, kf_id: int, q: BowVector,
                     covisible: np.ndarray) -> list[tuple[int, float]]:
         """BoW candidates above the adaptive DBoW2 minimum score, best first."""
-        if len(desc) == 0 or len(self.index) == 0:
-            return []
-        q = self.vocabulary.bow(desc)
-        if len(q) == 0:
+        if len(q) == 0 or len(self.index) == 0:
             return []
         indexed = [int(c) for c in covisible if int(c) in self.index]
         min_score = min((score(q, self.index.bow(c)) for c in indexed), default=0.0)
         exclude = {kf_id, *map(int, covisible), *range(max(0, kf_id - self.exclude_recent), kf_id)}
-        hits = self.index.query(desc, exclude=exclude, top_k=len(self.index))
+        hits = self.index.query_bow(q, exclude=exclude, top_k=len(self.index))
         if not hits:
             return []
         best = hits[0][1]

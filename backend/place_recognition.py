@@ -47,8 +47,10 @@ from typing import Iterable, Sequence, Union
 
 import numpy as np
 
-from backend.binary_clustering import DESCRIPTOR_BYTES, cluster_level, hamming, row_distances
+from backend.binary_clustering import DESCRIPTOR_BYTES, cluster_level, hamming
+from backend.vocabulary_kernels import descend
 from slam.core.atomic_io import write_npz_atomic
+from slam.core.descriptors import descriptor_words
 from slam.core.errors import DynslamError
 
 __all__ = ["VOCABULARY_VERSION", "VocabularyError", "Vocabulary", "BowVector", "score", "hamming",
@@ -104,6 +106,7 @@ class Vocabulary:
     def __init__(self, node_descriptors: np.ndarray, node_parents: np.ndarray, idf: np.ndarray,
                  k: int, levels: int, n_training_docs: int) -> None:
         self.node_descriptors = np.ascontiguousarray(node_descriptors, np.uint8)
+        self._node_words = descriptor_words(self.node_descriptors)      # (M, 4) uint64: the descent's bit counts
         self.node_parents = np.asarray(node_parents, np.int32)
         self.k = int(k)
         self.levels = int(levels)
@@ -195,21 +198,10 @@ class Vocabulary:
 
     # ------------------------------------------------------------------ lookup
     def transform(self, descriptors: np.ndarray) -> np.ndarray:
-        """Word id (int32, shape (N,)) of each descriptor: greedy descent, nearest child per level."""
+        """Word id (int32, shape (N,)) of each descriptor: greedy descent, nearest child per level (the first of
+        equal ones), compiled (``backend.vocabulary_kernels.descend``)."""
         x = _check_descriptors(descriptors)
-        cur = np.zeros(len(x), np.int64)
-        big = np.int32(1 << 20)
-        for _ in range(self.levels):
-            ch = self._children[cur]
-            rows = np.flatnonzero(ch[:, 0] >= 0)
-            if len(rows) == 0:
-                break
-            c = ch[rows]
-            valid = c >= 0
-            d = row_distances(x[rows], self.node_descriptors[np.maximum(c, 0)])
-            d[~valid] = big
-            cur[rows] = c[np.arange(len(rows)), np.argmin(d, axis=1)]
-        return self._node_word[cur]
+        return descend(descriptor_words(x), self._node_words, self._children, int(self.levels), self._node_word)
 
     def bow(self, descriptors: np.ndarray) -> BowVector:
         """tf-idf ``BowVector`` of one image's descriptors (tf = count / N, L1-normalised)."""
@@ -357,7 +349,11 @@ class KeyframeIndex:
               top_k: int = 10) -> list[tuple[int, float]]:
         """Best ``top_k`` (kf_id, score) pairs, score descending (ties: lower kf_id first), among
         keyframes that share at least one word with the query and are not in ``exclude``."""
-        q = self.vocabulary.bow(descriptors)
+        return self.query_bow(self.vocabulary.bow(descriptors), exclude, top_k)
+
+    def query_bow(self, q: BowVector, exclude: Iterable[int] = frozenset(),
+                  top_k: int = 10) -> list[tuple[int, float]]:
+        """``query`` by a BoW vector computed earlier (a keyframe's, which is also indexed and scored)."""
         if len(q) == 0 or len(self._words) == 0 or top_k <= 0:
             return []
         lo = np.searchsorted(self._words, q.words, side="left")

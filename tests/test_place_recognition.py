@@ -1,6 +1,8 @@
 """Bag-of-binary-words place recognition on ORB features of the synthetic orbit sequence."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -152,3 +154,33 @@ def test_load_errors_name_the_path(tmp_path, vocab):
         assert str(path) in str(err.value)
     with pytest.raises(VocabularyError, match="version 99"):
         Vocabulary.load(wrong_version)
+
+
+def _reference_transform(vocab: Vocabulary, x: np.ndarray) -> np.ndarray:
+    """The whole-array descent the compiled one replaced: per level, the distances of every descriptor to its
+    node's children, empty slots at 1 << 20, the first least distant child."""
+    cur = np.zeros(len(x), np.int64)
+    for _ in range(vocab.levels):
+        ch = vocab._children[cur]
+        rows = np.flatnonzero(ch[:, 0] >= 0)
+        if len(rows) == 0:
+            break
+        c = ch[rows]
+        d = hamming(x[rows][:, None, :], vocab.node_descriptors[np.maximum(c, 0)])
+        d[c < 0] = 1 << 20
+        cur[rows] = c[np.arange(len(rows)), np.argmin(d, axis=1)]
+    return vocab._node_word[cur]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_compiled_descent_is_the_whole_array_one(vocab, seed):
+    rng = np.random.default_rng(seed)
+    shipped = Vocabulary.load(Path(__file__).resolve().parents[1] / "backend" / "data" / "orb_vocabulary.npz")
+    small = Vocabulary.train(rng.integers(0, 256, (400, 32), dtype=np.uint8), k=3, levels=4, seed=seed)
+    for tree in (vocab, shipped, small):
+        for n in (0, 1, 700):
+            x = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+            if seed % 2:         # few distinct bits: many children at equal distances, the first must win
+                x &= rng.integers(0, 256, 32, dtype=np.uint8)
+            words = tree.transform(x)
+            assert words.dtype == np.int32 and np.array_equal(words, _reference_transform(tree, x))
