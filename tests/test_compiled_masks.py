@@ -1,5 +1,5 @@
 """The compiled loops of the keyframe-mask path (fusion of whole masks, the free-space test's projection and
-growth, the near-occluder's splat) against the whole-array numpy code they replaced, kept here as the
+growth, the near-occluder's splat, depth_sdf's bands) against the whole-array numpy code they replaced, kept here as the
 reference: the same bits on inputs full of the cases that decide them (NaN and out-of-range probabilities,
 cells without depth, depth ties in a splat, points behind the camera or outside the grid)."""
 from __future__ import annotations
@@ -8,7 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
+from types import SimpleNamespace
+
 from frontend.dynamic import free_space, near_occluder
+from frontend.dynamic.depth_sdf import DepthSdfMethod
 from frontend.dynamic.fusion import fuse, fuse_masks
 from slam.core.camera import PinholeCamera
 from slam.core.geometry import se3_exp
@@ -54,6 +57,19 @@ def reference_compare(p: np.ndarray, depth: np.ndarray, nearest: np.ndarray, mar
     margin = margin_m + 3.0 * free_space._NOISE_COEFF * seen.astype(float) ** 2
     known = inside & (seen < far) & (p[:, 2] <= seen + margin)
     return known, known & (p[:, 2] < near - margin)
+
+
+def reference_paint(mask, depth, det, model) -> None:
+    """depth_sdf's band of one model, painted with numpy (a Python float against the image: NEP 50)."""
+    if model["inliers"] == 0 or model["half_width"] <= 0:
+        return
+    h, w = mask.shape
+    x0, y0 = int(max(0, np.floor(det.x0))), int(max(0, np.floor(det.y0)))
+    x1, y1 = int(min(w, np.ceil(det.x1))), int(min(h, np.ceil(det.y1)))
+    if x1 <= x0 or y1 <= y0:
+        return
+    crop = depth[y0:y1, x0:x1]
+    mask[y0:y1, x0:x1] |= (crop > 0) & (np.abs(crop - model["mu"]) < model["half_width"])
 
 
 def reference_splat(prev_depth, prev_gray, prev_T_cw, T_cw, keep):
@@ -190,3 +206,35 @@ def test_the_near_occluders_splat_is_the_sorted_z_buffer(seed):
         depth, gray = occluder._warp_previous(T, keep)
         ref_depth, ref_gray = reference_splat(prev_depth, prev_gray, prev_T, T, keep)
         assert depth.tobytes() == ref_depth.tobytes() and gray.tobytes() == ref_gray.tobytes()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_depth_sdf_bands_are_the_per_model_union(dtype):
+    rng = np.random.default_rng(0)
+    for trial in range(100):
+        depth = (rng.choice([0.0, 1.0, 1.5, 2.0], size=(60, 80)) + rng.normal(0, 0.2, (60, 80))).astype(dtype)
+        depth[rng.random((60, 80)) < 0.05] = np.nan
+        x0, y0 = rng.uniform(-10, 70), rng.uniform(-10, 50)
+        det = SimpleNamespace(x0=x0, y0=y0, x1=x0 + rng.uniform(0, 60), y1=y0 + rng.uniform(0, 40))
+        models = []
+        for _ in range(int(rng.integers(0, 25))):
+            mu = float(rng.choice([1.0, 1.5, 2.0]) + rng.normal(0, 0.1))
+            half_width = float(abs(rng.normal(0, 0.2)) * rng.integers(0, 2))
+            if rng.random() < 0.3:      # a band edge exactly at a pixel's depth: the precision decides
+                d = float(depth[int(rng.integers(0, 60)), int(rng.integers(0, 80))])
+                half_width = abs(d - mu) if np.isfinite(d) else half_width
+            models.append(dict(mu=mu, half_width=half_width, inliers=int(rng.integers(0, 3))))
+        expected, painted = np.zeros((60, 80), bool), np.zeros((60, 80), bool)
+        for model in models:
+            reference_paint(expected, depth, det, model)
+        DepthSdfMethod._paint(painted, depth, det, models)
+        assert np.array_equal(painted, expected), trial
+    # a model whose centre float32 cannot hold: numpy compares in the image's precision (NEP 50), so a float32
+    # pixel 1.19e-7 above 1.0 lies outside a 1e-7 band around 1.00000005 (rounded to 1.0), a float64 one inside
+    depth = np.full((4, 4), np.nextafter(np.float32(1.0), np.float32(2.0)), dtype)
+    det = SimpleNamespace(x0=0.0, y0=0.0, x1=4.0, y1=4.0)
+    model = dict(mu=1.00000005, half_width=1e-7, inliers=1)
+    expected, painted = np.zeros((4, 4), bool), np.zeros((4, 4), bool)
+    reference_paint(expected, depth, det, model)
+    DepthSdfMethod._paint(painted, depth, det, [model])
+    assert np.array_equal(painted, expected) and expected.all() == (dtype == np.float64)

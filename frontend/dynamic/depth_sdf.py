@@ -53,6 +53,7 @@ from __future__ import annotations
 
 from typing import Optional
 
+import numba
 import numpy as np
 
 from frontend.dynamic.base import DynamicContext, MethodOutput
@@ -153,8 +154,7 @@ class DepthSdfMethod:
             fitted += 1
             evaluated[s] = True
             dynamic[s[inl]] = True
-            for model in models:
-                self._paint(mask, ctx.depth, det, model)
+            self._paint(mask, ctx.depth, det, models)
         prob = dynamic.astype(float)
         prob[in_box & ~evaluated] = np.nan
         info = dict(boxes=boxes, fitted=fitted, dynamic=int(dynamic.sum()),
@@ -162,9 +162,12 @@ class DepthSdfMethod:
         return MethodOutput(prob, mask.astype(np.float32), info)
 
     @staticmethod
-    def _paint(mask: np.ndarray, depth: np.ndarray, det, model: dict) -> None:
-        """Box pixels whose depth lies in a model's inlier band."""
-        if model["inliers"] == 0 or model["half_width"] <= 0:
+    def _paint(mask: np.ndarray, depth: np.ndarray, det, models: list[dict]) -> None:
+        """Box pixels whose depth lies in any model's inlier band. One compiled pass over the box for all the
+        models (the union keeps ~20: a pass per model was ~1 ms a frame on Bonn crowd); each comparison in the
+        depth image's own precision, as numpy makes it with a Python float (NEP 50)."""
+        models = [m for m in models if m["inliers"] > 0 and m["half_width"] > 0]
+        if not models:
             return
         h, w = mask.shape
         x0, y0 = int(max(0, np.floor(det.x0))), int(max(0, np.floor(det.y0)))
@@ -172,9 +175,25 @@ class DepthSdfMethod:
         if x1 <= x0 or y1 <= y0:
             return
         crop = depth[y0:y1, x0:x1]
-        mask[y0:y1, x0:x1] |= (crop > 0) & (np.abs(crop - model["mu"]) < model["half_width"])
+        mus = np.array([m["mu"] for m in models], dtype=crop.dtype)
+        half_widths = np.array([m["half_width"] for m in models], dtype=crop.dtype)
+        _paint_bands(mask[y0:y1, x0:x1], crop, mus, half_widths)
 
     def end_frame(self, ctx: DynamicContext, output: MethodOutput, T_cw: Optional[np.ndarray],
                   is_keyframe: bool) -> None:
         """Stateless between frames."""
         return None
+
+
+@numba.njit(nogil=True, cache=True)
+def _paint_bands(mask, crop, mus, half_widths):
+    """``mask |= (crop > 0) & (|crop - mu_m| < half_width_m for some m)``, in ``crop``'s precision."""
+    for r in range(crop.shape[0]):
+        for c in range(crop.shape[1]):
+            d = crop[r, c]
+            if mask[r, c] or not d > 0:
+                continue
+            for m in range(len(mus)):
+                if abs(d - mus[m]) < half_widths[m]:
+                    mask[r, c] = True
+                    break
