@@ -14,6 +14,7 @@ from frontend.dynamic import free_space, near_occluder
 from frontend.dynamic.depth_sdf import DepthSdfMethod
 from frontend.dynamic.fusion import fuse, fuse_masks
 from slam.core.camera import PinholeCamera
+from slam.run.run_artifacts import mask_to_png
 from slam.core.geometry import se3_exp
 
 CAMERA = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
@@ -238,3 +239,17 @@ def test_depth_sdf_bands_are_the_per_model_union(dtype):
     reference_paint(expected, depth, det, model)
     DepthSdfMethod._paint(painted, depth, det, [model])
     assert np.array_equal(painted, expected) and expected.all() == (dtype == np.float64)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, bool])
+def test_masks_become_the_same_pngs(dtype):
+    """``masks/`` PNGs: NaN 0, clipped, times 255 and rounded half to even in the mask's precision."""
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        mask = rng.random((48, 64))
+        for value, share in ((np.nan, 0.1), (np.inf, 0.05), (-np.inf, 0.05), (-0.5, 0.05), (1.5, 0.05), (-0.0, 0.05)):
+            mask[rng.random(mask.shape) < share] = value
+        halfway = (rng.integers(0, 255, mask.shape) + 0.5) / 255          # x.5 after the scaling: ties
+        mask = np.where(rng.random(mask.shape) < 0.2, halfway, mask).astype(dtype)
+        expected = np.round(np.clip(np.nan_to_num(mask, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+        assert np.array_equal(mask_to_png(mask), expected)

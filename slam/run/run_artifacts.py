@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 import cv2
+import numba
 import numpy as np
 
 from slam.core.atomic_io import write_atomic, write_text_atomic
@@ -56,8 +57,29 @@ def write_png_atomic(path: Path, image: np.ndarray) -> None:
 
 
 def mask_to_png(mask: np.ndarray) -> np.ndarray:
-    """Dynamic probability in [0, 1] (HxW float) to 8-bit, 255 = certainly dynamic."""
-    return np.round(np.clip(np.nan_to_num(mask, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+    """Dynamic probability in [0, 1] (HxW float) to 8-bit, 255 = certainly dynamic: NaN 0, clipped to [0, 1],
+    times 255 and rounded half to even in the mask's own precision (what ``np.round(np.clip(np.nan_to_num(mask),
+    0, 1) * 255.0)`` gives, NEP 50), in one compiled pass (~0.6 ms a frame of whole-array steps on Bonn crowd,
+    where keyframe masks are written again as later frames revise them)."""
+    mask = np.asarray(mask)
+    if mask.dtype not in (np.float32, np.float64):
+        mask = mask.astype(np.float64)
+    return _to_png(mask.reshape(-1), mask.dtype.type(255.0)).reshape(mask.shape)
+
+
+@numba.njit(nogil=True, cache=True)
+def _to_png(mask, scale):
+    out = np.empty(mask.shape[0], np.uint8)
+    for i in range(mask.shape[0]):
+        v = mask[i]
+        if v > 1:                  # +inf too
+            v = scale
+        elif v > 0:
+            v = v * scale
+        else:                      # NaN, -inf and below 0
+            v = scale * 0
+        out[i] = np.uint8(np.rint(v))
+    return out
 
 
 def depth_to_millimetres(depth: np.ndarray) -> np.ndarray:
