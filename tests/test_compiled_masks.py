@@ -1,5 +1,5 @@
 """The compiled loops of the keyframe-mask path (fusion of whole masks, the free-space test's projection and
-growth, the near-occluder's splat, depth_sdf's bands) against the whole-array numpy code they replaced, kept here as the
+growth, the near-occluder's splat, depth_sdf's bands, box_depth's Eq. 8, the masks' PNG values) against the whole-array numpy code they replaced, kept here as the
 reference: the same bits on inputs full of the cases that decide them (NaN and out-of-range probabilities,
 cells without depth, depth ties in a splat, points behind the camera or outside the grid)."""
 from __future__ import annotations
@@ -11,6 +11,7 @@ import pytest
 from types import SimpleNamespace
 
 from frontend.dynamic import free_space, near_occluder
+from frontend.dynamic.box_depth_segmentation import _LAYER_HALF_M, ALL_SIDES, eq8_filter, side_distance
 from frontend.dynamic.depth_sdf import DepthSdfMethod
 from frontend.dynamic.fusion import fuse, fuse_masks
 from slam.core.camera import PinholeCamera
@@ -71,6 +72,19 @@ def reference_paint(mask, depth, det, model) -> None:
         return
     crop = depth[y0:y1, x0:x1]
     mask[y0:y1, x0:x1] |= (crop > 0) & (np.abs(crop - model["mu"]) < model["half_width"])
+
+
+def reference_eq8(region, depth, alpha, omega, sides=ALL_SIDES, layer=None) -> np.ndarray:
+    """box_depth's Eq. 8 with whole-array steps (a Python float against the image: NEP 50)."""
+    if not region.any():
+        return region
+    d_ave = float(depth[region].mean())
+    deficit = alpha * d_ave - depth
+    keep = deficit + omega * side_distance(*depth.shape) >= 0.0
+    if layer is not None and not all(sides):
+        on_body = np.abs(depth - np.float32(layer)) <= _LAYER_HALF_M
+        keep |= on_body & (deficit + omega * side_distance(*depth.shape, sides) >= 0.0)
+    return region & keep
 
 
 def reference_splat(prev_depth, prev_gray, prev_T_cw, T_cw, keep):
@@ -253,3 +267,20 @@ def test_masks_become_the_same_pngs(dtype):
         mask = np.where(rng.random(mask.shape) < 0.2, halfway, mask).astype(dtype)
         expected = np.round(np.clip(np.nan_to_num(mask, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
         assert np.array_equal(mask_to_png(mask), expected)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_eq8_is_the_whole_array_filter(dtype):
+    rng = np.random.default_rng(2)
+    trimmed = 0
+    for trial in range(150):
+        h, w = int(rng.integers(1, 120)), int(rng.integers(1, 90))
+        depth = (rng.choice([0.0, 1.0, 1.2, 2.5], size=(h, w)) + rng.normal(0, 0.3, (h, w))).astype(dtype)
+        region = rng.random((h, w)) < rng.random()
+        sides = tuple(bool(x) for x in rng.integers(0, 2, 4))          # a box cut by the image's border
+        layer = None if trial % 3 == 0 else float(rng.choice([1.0, 1.2, 2.5]) + rng.normal(0, 0.05))
+        alpha, omega = float(rng.choice([1.0, 0.8, 1.2])), float(rng.choice([0.01, 0.02]))
+        expected = reference_eq8(region, depth, alpha, omega, sides, layer)
+        assert np.array_equal(eq8_filter(region, depth, alpha, omega, sides, layer), expected), trial
+        trimmed += int(expected.sum() < region.sum())
+    assert trimmed > 50                     # the cases remove pixels, the test decides something

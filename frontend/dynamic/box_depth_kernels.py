@@ -57,3 +57,41 @@ def mutual_best(words_a, words_b, ia, ib, max_distance):
             out[m, 1] = ib[k]
             m += 1
     return out
+
+
+@numba.njit(**_JIT)
+def _side_gap(pos, size, near, far):
+    """Distance of a pixel centre (``pos`` + 0.5) to the nearer of a box's two sides along one axis, of those
+    that count (``near``: the low side, ``far``: the high one; none: infinite)."""
+    centre = pos + 0.5
+    gap = np.inf
+    if near:
+        gap = centre
+    if far:
+        gap = min(gap, size - centre)
+    return gap
+
+
+@numba.njit(**_JIT)
+def eq8_keep(region, depth, bound, omega, sides, has_layer, layer, half):
+    """``box_depth_segmentation.eq8_filter`` after its mean: ``region`` less the pixels with ``bound - d_i +
+    omega G_i < 0`` (``bound`` = alpha * d_ave in the depth's precision, the sum in float64, as numpy computes
+    them); with ``has_layer`` a pixel within ``half`` of ``layer`` also stays when the sum holds with G measured
+    to the ``sides`` that count (left, top, right, bottom)."""
+    h, w = depth.shape
+    out = np.zeros((h, w), np.bool_)
+    all_sides = sides[0] and sides[1] and sides[2] and sides[3]
+    for r in range(h):
+        gy_all = _side_gap(np.float64(r), np.float64(h), True, True)
+        gy = _side_gap(np.float64(r), np.float64(h), sides[1], sides[3])
+        for c in range(w):
+            if not region[r, c]:
+                continue
+            deficit = np.float64(bound - depth[r, c])
+            g = min(gy_all, _side_gap(np.float64(c), np.float64(w), True, True))
+            keep = deficit + omega * g >= 0.0
+            if not keep and has_layer and not all_sides and abs(depth[r, c] - layer) <= half:
+                g = min(gy, _side_gap(np.float64(c), np.float64(w), sides[0], sides[2]))
+                keep = deficit + omega * g >= 0.0
+            out[r, c] = keep
+    return out

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from frontend.dynamic.base import Detection
+from frontend.dynamic.box_depth_kernels import eq8_keep
 from slam.core.dynamic_config import BoxDepthConfig
 
 _SEED_SEARCH_PX = 4          # a seed on invalid depth moves to the nearest valid pixel this close
@@ -112,16 +113,16 @@ def eq8_filter(region: np.ndarray, depth: np.ndarray, alpha: float, omega: float
                sides: Sides = ALL_SIDES, layer: Optional[float] = None) -> np.ndarray:
     """Remove the pixels of ``region`` (bool, box crop) with ``alpha * d_ave - d_i + omega * G_i < 0``.
     With ``layer`` (the person's depth) and a side of ``sides`` not counting, a pixel within
-    ``_LAYER_HALF_M`` of the layer is measured to the counting sides only."""
+    ``_LAYER_HALF_M`` of the layer is measured to the counting sides only. The mean is numpy's (Eq. 3); the
+    per-pixel test (Eqs. 4-8) one compiled pass (``box_depth_kernels.eq8_keep``) in the precisions numpy used
+    for it: alpha * d_ave and the layer's band in the depth's own (a Python float against the image, NEP 50),
+    the sum with omega * G_i in float64."""
     if not region.any():
         return region
     d_ave = float(depth[region].mean())                                         # Eq. 3
-    deficit = alpha * d_ave - depth                                             # Eq. 4
-    keep = deficit + omega * side_distance(*depth.shape) >= 0.0                 # Eqs. 5-8
-    if layer is not None and not all(sides):
-        on_body = np.abs(depth - np.float32(layer)) <= _LAYER_HALF_M
-        keep |= on_body & (deficit + omega * side_distance(*depth.shape, sides) >= 0.0)
-    return region & keep
+    kind = depth.dtype.type
+    return eq8_keep(region, depth, kind(alpha * d_ave), float(omega), tuple(bool(s) for s in sides),
+                    layer is not None, kind(np.float32(layer if layer is not None else 0.0)), kind(_LAYER_HALF_M))
 
 
 def cached_person_layer(layers: dict, box: tuple[int, int, int, int], depth: np.ndarray) -> Optional[float]:
