@@ -64,7 +64,7 @@ Interpretation of the paper, and deviations (numbers are all in ``CprConfig``):
   point's distance in R; a point with no candidate counts 5 cm. Measured (``tools/classification.py``,
   60 generated frames of people walking, cpr precision / recall): kdtree 0.758 / 0.927; projective, window 1,
   cap 5 cm 0.820 / 0.927 (cap 3 cm 0.819 / 0.909, 10 cm 0.823 / 0.896, 20 cm 0.843 / 0.873; window 2
-  0.732 / 0.912); kdtree with the 5 cm cap 0.743 / 0.960. Bonn numbers: see "Time" below.
+  0.732 / 0.912); kdtree with the 5 cm cap 0.743 / 0.960. Bonn numbers: docs/dynamic.md, "cpr's time".
 * Iterations: the paper gives no count. ``icp_iterations`` (6) in all, the first ``icp_intensity_iterations``
   (3) intensity-assisted. On Bonn crowd 4, 6, 8, 10 and 20 iterations gave the same masks within noise (more
   iterations slightly worse: static sub-poses drift along their weak directions), so the cheap end is used.
@@ -139,35 +139,10 @@ that mix a person with background (K = 10 is coarse for a crowd). Static scenes 
 sub-clouds whose sub-pose drifted most: a ~1 cm drift of a small sub-cloud's sub-pose moves R of the whole
 cloud by up to ~60 %, even on exact synthetic data.
 
-Time (2-core machine shared with other jobs; ``python tools/cpr_timing.py --frames 120``, median of 3 runs;
-medians per frame): with ``kdtree`` cloud 8.6 ms (sampling, voxels, MLS, dense target), K-Means 1.8, target
-tree 2.0, sub-poses 15.4, correlation 7.3, mask 0.7: process 37.1 ms. With ``projective`` (default): cloud
-7.8, K-Means 1.8, target grid 0.7, sub-poses 8.9, correlation 2.4, mask 0.7: process 22.6 ms. What is left
-in the sub-poses is per-iteration numpy work on ~1500 points x 9 candidates (the window gather, the batched
-Kabsch; the robust-scale medians were ~40 % until 2026-12-01, below), in the cloud the MLS (~4 ms). On the 480 Bonn crowd frames the raw
-masks of the two associations overlap with IoU 0.62 (dynamic pixels 19.1 % -> 20.4 %). Bonn crowd ATE RMSE,
-kdtree -> projective: default config (all four methods) 0.0116 -> 0.0117 m; ``-c dynamic_cpr`` (seed 0)
-0.124 -> 0.105 m. Hard scenes (``tools/hard_scenes.py``), cpr per-feature precision / recall: close_pass
-0.027 / 0.993 -> 0.026 / 0.993, three_close 0.427 / 0.650 -> 0.461 / 0.749, stand_walk 0.020 / 1.000 ->
-0.018 / 0.967, border 0.019 / 0.946 -> 0.018 / 0.948. ``association=kdtree, score_max_distance=0`` gives
-main's masks byte for byte (480 / 480 Bonn frames).
-The robust-scale medians (2026-12-01) pad every sub-cloud's row so that its middle lands in one shared column and
-select only that column (``_Rows``), instead of selecting every row's own middle positions: the same bits
-(``python tools/cpr_timing.py --compare``: 150 / 150 Bonn frames identical), sub-poses 14.3 -> 9.7 ms and
-process 32.5 -> 25.4 ms (sums of stage medians; means of three alternating runs of ``python tools/cpr_timing.py
---frames 150`` each, on a machine whose medians moved 26-39 ms between identical runs).
-Compiled kernels (2026-12-02, ``cpr_cloud_kernels``, ``cpr_kmeans_kernels`` and ``cpr_icp_kernels``: numba, the GIL
-released): the cloud, K-Means, the projective sub-pose ICP and the scores are loops over points doing the same
-arithmetic in the same order, so the masks are the numpy code's (``python tools/cpr_timing.py --compare``: 480 / 480 Bonn frames
-identical; fr1/rpy 398 / 400, the other two differing in a few pixels from rounding) at half the time: process 23.2 -> 11.6 ms median on Bonn
-crowd (cloud 7.9 -> 2.9, K-Means 1.9 -> 1.1, target 0.9 -> 0.6, sub-poses 8.5 -> 4.0, correlation 2.8 -> 1.9),
-15.1 -> 7.1 ms on fr1/rpy (``python tools/cpr_timing.py [SEQ] --frames 480``, the two codes one after the
-other). In full runs (``python tools/speed_ab.py a0b2fdf``, two ABBA rounds) Bonn's trajectory stayed the same
-bits and its whole run went 91.3 -> 78.8 ms per frame (CPU 134.3 -> 122.3); fr1/rpy's diverged from those two
-frames (ATE 0.0227 -> 0.0230 m, 65 -> 70 keyframes, whose mapping ate the CPU cpr saved: 75.9 -> 73.4 ms).
-What is left: the exact medians of ~1,200 candidate residuals per sub-cloud and iteration (the robust
-scales), the Gaussian weights' ``exp`` in the MLS. ``association: kdtree`` keeps the numpy/scipy path. The
-first run on a machine compiles the kernels (~20 s; numba's cache after).
+Time: ~10 ms median per Bonn crowd frame alone on a core (``python tools/cpr_timing.py
+../shared/data/rgbd_bonn_crowd_first480 --frames 480``, 2026-12-02; the first run on a machine compiles the
+kernels, ~20 s, numba's cache after). How it got there (the projective association, the robust scales'
+shared column, the compiled kernels), each step with its measurements: ``docs/dynamic.md``, "cpr's time".
 The paper reports 213 ms on a Jetson Orin.
 """
 from __future__ import annotations

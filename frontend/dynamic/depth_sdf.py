@@ -57,6 +57,7 @@ import numba
 import numpy as np
 
 from frontend.dynamic.base import DynamicContext, MethodOutput
+from frontend.dynamic.box_depth_segmentation import box_pixels
 from slam.core.dynamic_config import ClassGroups, DepthSdfConfig
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
@@ -169,11 +170,10 @@ class DepthSdfMethod:
         models = [m for m in models if m["inliers"] > 0 and m["half_width"] > 0]
         if not models:
             return
-        h, w = mask.shape
-        x0, y0 = int(max(0, np.floor(det.x0))), int(max(0, np.floor(det.y0)))
-        x1, y1 = int(min(w, np.ceil(det.x1))), int(min(h, np.ceil(det.y1)))
-        if x1 <= x0 or y1 <= y0:
+        box = box_pixels(det, mask.shape[1], mask.shape[0])
+        if box is None:
             return
+        x0, y0, x1, y1 = box
         crop = depth[y0:y1, x0:x1]
         mus = np.array([m["mu"] for m in models], dtype=crop.dtype)
         half_widths = np.array([m["half_width"] for m in models], dtype=crop.dtype)

@@ -194,13 +194,13 @@ class NearOccluder:
         h, w = keep.shape
         depth_img, gray_img = _splat(p, cells, prev_gray.ravel(), keep, float(cam.fx), float(cam.fy), float(cam.cx),
                                      float(cam.cy), _SCALE)
-        if not (depth_img > 0).any():
+        landed = (depth_img > 0).astype(np.uint8)
+        if not landed.any():
             return depth_img, gray_img
         # a splat leaves one-cell gaps where the view stretches: a 3x3 closing finds them, a 3x3 maximum fills
         # them (depth only decides *whether* a surface was there; its grey comes along); the closing does not
         # grow the splat's outline into the holes around it
         kernel = np.ones((3, 3), np.uint8)
-        landed = (depth_img > 0).astype(np.uint8)
         gaps = (cv2.morphologyEx(landed, cv2.MORPH_CLOSE, kernel) > 0) & (landed == 0)
         filled = cv2.dilate(depth_img, kernel)
         gray_img[gaps] = cv2.dilate(gray_img, kernel)[gaps]
