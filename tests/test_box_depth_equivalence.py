@@ -1,6 +1,7 @@
 """box_depth's faster formulations against the ones they replaced: the compiled frame-to-frame match
-(frontend/dynamic/box_depth_kernels.py) and the ring of depths around a box (box_depth_segmentation), each the
-same result, so the same trajectories."""
+(frontend/dynamic/box_depth_kernels.py), the ring of depths around a box, the person layer's histogram and band
+counts, and the flood fill's prepared crop (box_depth_segmentation), each the same result, so the same
+trajectories."""
 from __future__ import annotations
 
 import numpy as np
@@ -77,3 +78,134 @@ def test_ring_depths_are_the_sampled_pixels_around_the_box():
         want = outer[~((rr >= y0) & (rr < y1) & (cc >= x0) & (cc < x1)) & (outer > 0)]
         got = seg._ring_depths((x0, y0, x1, y1), depth)
         assert np.array_equal(np.sort(got), np.sort(want)), (x0, y0, x1, y1)
+
+
+def _reference_person_layer(box, depth):
+    """``person_layer`` as it was before its counts were compiled: numpy's histogram and a count per peak."""
+    from frontend.dynamic import box_depth_segmentation as seg
+
+    x0, y0, x1, y1 = box
+    if x1 <= x0 or y1 <= y0:
+        return None
+    inside = depth[y0:y1:seg._LAYER_PIXEL_STEP, x0:x1:seg._LAYER_PIXEL_STEP].astype(float)
+    inside = inside[inside > 0]
+    if len(inside) < 20:
+        return None
+    ring = seg._ring_depths(box, depth)
+    bin_m = seg._LAYER_BIN_M
+    hist, edges = np.histogram(inside, np.arange(bin_m * np.floor(inside.min() / bin_m) - bin_m,
+                                                 inside.max() + 2 * bin_m, bin_m))
+    smooth = np.convolve(hist, np.ones(3) / 3, mode="same")
+    peak = (smooth[1:-1] >= smooth[:-2]) & (smooth[1:-1] > smooth[2:]) & (smooth[1:-1] > 0)
+    best, best_score = None, -1.0
+    for k in np.flatnonzero(peak) + 1:
+        centre = 0.5 * (edges[k] + edges[k + 1])
+        held = np.count_nonzero(np.abs(inside - centre) <= seg._LAYER_HALF_M)
+        if held < seg._LAYER_MIN_SHARE * len(inside):
+            continue
+        near = seg._LAYER_HALF_M + seg._LAYER_RING_SLACK_M
+        beyond = np.count_nonzero(np.abs(ring - centre) <= near) if len(ring) else 0
+        score = held / (held + beyond * len(inside) / max(len(ring), 1))
+        if score > best_score:
+            best, best_score = float(centre), score
+    return best
+
+
+def test_histogram_counts_are_numpys_histogram():
+    """Values on the edges (each bin's left edge counts, the last bin's right edge too), outside them, NaN."""
+    from frontend.dynamic.box_depth_kernels import histogram_counts
+
+    rng = np.random.default_rng(4)
+    for trial in range(200):
+        edges = np.arange(-0.1 + 0.05 * int(rng.integers(0, 20)), 3.0 + rng.random(), 0.05)
+        values = np.concatenate([rng.uniform(edges[0] - 0.2, edges[-1] + 0.2, 300),
+                                 rng.choice(edges, 40), [np.nan] * (trial % 2)])
+        expected = np.histogram(values[np.isfinite(values)], edges)[0]
+        for guess in (0.05, 0.03, 0.11):        # the step only guesses the bin: any guess, the same counts
+            assert np.array_equal(histogram_counts(values, edges, guess), expected), trial
+    assert len(histogram_counts(np.ones(3), np.array([1.0]), 0.05)) == 0
+
+
+def test_band_counts_are_numpys_counts_at_the_band_edges():
+    from frontend.dynamic.box_depth_kernels import band_counts
+
+    rng = np.random.default_rng(7)
+    for centres, half in [(0.5 * (np.arange(0.55, 4.0, 0.05)[:-1] + np.arange(0.55, 4.0, 0.05)[1:]), 0.2),
+                          (np.arange(0.5, 4.0, 0.125), 0.25)]:      # dyadic: values exactly on the band's edges
+        edges = np.concatenate([centres + half, centres - half, np.nextafter(centres + half, 0), centres])
+        values = np.concatenate([edges, rng.uniform(0.3, 4.5, 500), [np.nan]])
+        on_edge = 0
+        for k in range(len(centres)):
+            want = np.count_nonzero(np.abs(values - centres[k]) <= half)
+            assert band_counts(values, centres[k:k + 1], half)[0] == want
+            on_edge += np.count_nonzero(np.abs(values - centres[k]) == half)
+        assert np.array_equal(band_counts(values, centres, half),
+                              [np.count_nonzero(np.abs(values - c) <= half) for c in centres])
+    assert on_edge > 10                     # the band's edge itself is tested
+
+
+def test_person_layers_are_the_numpy_formulations():
+    """Depth images of a few layers with depth quantised to half the histogram's 5 cm bins (values on its edges
+    and on its bins' centres +- the layer's half width: ties of every comparison), boxes anywhere: the same
+    layer, to the bit."""
+    from frontend.dynamic.box_depth_segmentation import person_layer
+
+    rng = np.random.default_rng(5)
+    found = 0
+    for trial in range(60):
+        layers = rng.choice(np.arange(0.6, 4.0, 0.025), int(rng.integers(1, 5)))
+        depth = layers[rng.integers(0, len(layers), (H // 8, W // 8))].repeat(8, 0).repeat(8, 1)
+        depth = depth + np.where(rng.random((H, W)) < 0.5, 0.0, rng.normal(0, 0.04, (H, W)))
+        depth[rng.random((H, W)) < 0.1] = 0.0
+        depth = depth.astype(np.float32 if trial % 2 else np.float64)
+        for _ in range(10):
+            x0, y0 = int(rng.integers(0, W - 1)), int(rng.integers(0, H - 1))
+            box = (x0, y0, int(rng.integers(x0 + 1, W + 1)), int(rng.integers(y0 + 1, H + 1)))
+            want = _reference_person_layer(box, depth)
+            assert person_layer(box, depth) == want, (trial, box)
+            found += want is not None
+    assert found > 300
+
+
+def _reference_flood_fill(depth, seeds, omega, max_components=64):
+    """``flood_fill`` as it was before the crop was prepared once per box (numpy's masks per fill)."""
+    import cv2
+
+    from frontend.dynamic.box_depth_segmentation import _FILL_FLAGS
+    img = np.ascontiguousarray(depth, dtype=np.float32)
+    h, w = img.shape
+    mask = np.zeros((h + 2, w + 2), np.uint8)
+    inner = mask[1:-1, 1:-1]
+    inner[~(np.isfinite(img) & (img > 0))] = 1
+    img = np.where(inner == 1, np.float32(0), img)
+    seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
+    if len(seeds):
+        seeds = seeds[(seeds[:, 0] >= 0) & (seeds[:, 0] < h) & (seeds[:, 1] >= 0) & (seeds[:, 1] < w)]
+    diff = float(np.nextafter(np.float32(omega), np.float32(0)))
+    for _ in range(max_components):
+        if not len(seeds):
+            break
+        seeds = seeds[inner[seeds[:, 0], seeds[:, 1]] == 0]
+        if not len(seeds):
+            break
+        r, c = int(seeds[0, 0]), int(seeds[0, 1])
+        cv2.floodFill(img, mask, (c, r), 0, diff, diff, _FILL_FLAGS)
+    return inner == 255
+
+
+def test_fills_of_a_prepared_crop_are_the_fills_of_the_crop():
+    """One ``DepthFill`` per crop, filled from several seed sets in turn (as Algorithm 1 tries its seeds): each
+    fill the same pixels as a fill prepared anew, on strided float32 / float64 crops with NaN, inf, zero and
+    negative depth, and steps of exactly omega (the paper's strict test)."""
+    from frontend.dynamic.box_depth_segmentation import DepthFill
+
+    rng = np.random.default_rng(6)
+    for trial in range(40):
+        full = (1.0 + 0.05 * rng.integers(0, 4, (120, 160))).astype(np.float64 if trial % 2 else np.float32)
+        full[rng.random(full.shape) < 0.05] = rng.choice([0.0, np.nan, np.inf, -1.0])
+        crop = full[10:110:1 + trial % 2, 5:150]
+        fills = DepthFill(crop)
+        for _ in range(4):
+            seeds = np.stack([rng.integers(-5, crop.shape[0] + 5, 3), rng.integers(-5, crop.shape[1] + 5, 3)], 1)
+            got = fills.fill(seeds, 0.05)
+            assert np.array_equal(got, _reference_flood_fill(crop, seeds, 0.05)), trial

@@ -1,4 +1,7 @@
-"""Compiled kernels of the box_depth method (numba): the frame-to-frame descriptor match of Algorithm 3.
+"""Compiled kernels of the box_depth method (numba): the frame-to-frame descriptor match of Algorithm 3, Eq. 8's
+per-pixel test, the flood fill's prepared crop, and the person layer's histogram and band counts (each the same
+result as the numpy code it replaced, which ``tests/test_box_depth_equivalence.py`` and
+``tests/test_compiled_masks.py`` keep as the reference).
 
 ``mutual_best`` takes the candidate pairs in the order the k-d tree lists them and keeps, like a stable sort
 on (index, distance), the first pair of least Hamming distance per keypoint of either frame: the same matches
@@ -60,16 +63,19 @@ def mutual_best(words_a, words_b, ia, ib, max_distance):
 
 
 @numba.njit(**_JIT)
-def _side_gap(pos, size, near, far):
-    """Distance of a pixel centre (``pos`` + 0.5) to the nearer of a box's two sides along one axis, of those
-    that count (``near``: the low side, ``far``: the high one; none: infinite)."""
-    centre = pos + 0.5
-    gap = np.inf
-    if near:
-        gap = centre
-    if far:
-        gap = min(gap, size - centre)
-    return gap
+def _side_gaps(size, near, far):
+    """Distance of each pixel centre (index + 0.5) along one axis of ``size`` pixels to the nearer of a box's two
+    sides, of those that count (``near``: the low side, ``far``: the high one; none: infinite)."""
+    gaps = np.empty(size, np.float64)
+    for i in range(size):
+        centre = np.float64(i) + 0.5
+        gap = np.inf
+        if near:
+            gap = centre
+        if far:
+            gap = min(gap, np.float64(size) - centre)
+        gaps[i] = gap
+    return gaps
 
 
 @numba.njit(**_JIT)
@@ -81,17 +87,90 @@ def eq8_keep(region, depth, bound, omega, sides, has_layer, layer, half):
     h, w = depth.shape
     out = np.zeros((h, w), np.bool_)
     all_sides = sides[0] and sides[1] and sides[2] and sides[3]
+    gy_all, gx_all = _side_gaps(h, True, True), _side_gaps(w, True, True)
+    gy_sides, gx_sides = _side_gaps(h, sides[1], sides[3]), _side_gaps(w, sides[0], sides[2])
     for r in range(h):
-        gy_all = _side_gap(np.float64(r), np.float64(h), True, True)
-        gy = _side_gap(np.float64(r), np.float64(h), sides[1], sides[3])
+        gy = gy_all[r]
         for c in range(w):
             if not region[r, c]:
                 continue
             deficit = np.float64(bound - depth[r, c])
-            g = min(gy_all, _side_gap(np.float64(c), np.float64(w), True, True))
-            keep = deficit + omega * g >= 0.0
+            keep = deficit + omega * min(gy, gx_all[c]) >= 0.0
             if not keep and has_layer and not all_sides and abs(depth[r, c] - layer) <= half:
-                g = min(gy, _side_gap(np.float64(c), np.float64(w), sides[0], sides[2]))
-                keep = deficit + omega * g >= 0.0
+                keep = deficit + omega * min(gy_sides[r], gx_sides[c]) >= 0.0
             out[r, c] = keep
+    return out
+
+
+@numba.njit(**_JIT)
+def fill_inputs(depth):
+    """What ``cv2.floodFill`` takes for a depth crop, in one pass: the depth as contiguous float32 with 0 where it
+    is invalid (not finite or <= 0 after the cast; floodFill must not see NaN), and its (h+2, w+2) uint8 mask with
+    1 on the invalid pixels (never entered) and 0 elsewhere, the border included."""
+    h, w = depth.shape
+    image = np.empty((h, w), np.float32)
+    mask = np.zeros((h + 2, w + 2), np.uint8)
+    inf = np.float32(np.inf)
+    for r in range(h):
+        for c in range(w):
+            d = np.float32(depth[r, c])
+            valid = d > 0 and d < inf            # NaN fails both; a select, not a branch
+            image[r, c] = d if valid else np.float32(0)
+            mask[r + 1, c + 1] = np.uint8(0 if valid else 1)
+    return image, mask
+
+
+@numba.njit(**_JIT)
+def histogram_counts(values, edges, step):
+    """``np.histogram(values, edges)[0]`` for increasing ``edges`` about ``step`` apart: bin k holds edges[k] <= v <
+    edges[k+1], the last bin its right edge too, values outside (and NaN) in none. The bin is guessed from
+    ``step`` and settled by comparing with the edges themselves, the comparisons numpy's sorted search makes,
+    so the counts are the same whatever the guess."""
+    n_bins = edges.shape[0] - 1
+    counts = np.zeros(max(n_bins, 0), np.int64)
+    if n_bins < 1:
+        return counts
+    first, last = edges[0], edges[n_bins]
+    for i in range(values.shape[0]):
+        v = values[i]
+        if not (v >= first and v <= last):
+            continue
+        k = min(max(int((v - first) / step), 0), n_bins - 1)
+        while k > 0 and v < edges[k]:
+            k -= 1
+        while k < n_bins - 1 and v >= edges[k + 1]:
+            k += 1
+        counts[k] += 1
+    return counts
+
+
+@numba.njit(**_JIT)
+def band_counts(values, centres, half):
+    """For each centre, how many ``values`` lie within ``half`` of it (|v - c| <= half, in float64)."""
+    counts = np.zeros(centres.shape[0], np.int64)
+    for k in range(centres.shape[0]):
+        centre, count = centres[k], 0
+        for i in range(values.shape[0]):
+            count += abs(values[i] - centre) <= half
+        counts[k] = count
+    return counts
+
+
+@numba.njit(**_JIT)
+def positive_samples(depth, y0, y1, x0, x1, step):
+    """``depth[y0:y1:step, x0:x1:step]`` as float64, its values > 0 only, in row-major order (numpy's cast and
+    boolean index of the strided crop in one pass)."""
+    count = 0
+    for r in range(y0, y1, step):
+        for c in range(x0, x1, step):
+            if np.float64(depth[r, c]) > 0:
+                count += 1
+    out = np.empty(count, np.float64)
+    k = 0
+    for r in range(y0, y1, step):
+        for c in range(x0, x1, step):
+            v = np.float64(depth[r, c])
+            if v > 0:
+                out[k] = v
+                k += 1
     return out

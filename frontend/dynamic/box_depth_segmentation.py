@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from frontend.dynamic.base import Detection
-from frontend.dynamic.box_depth_kernels import eq8_keep
+from frontend.dynamic.box_depth_kernels import band_counts, eq8_keep, fill_inputs, histogram_counts, positive_samples
 from slam.core.dynamic_config import BoxDepthConfig
 
 _SEED_SEARCH_PX = 4          # a seed on invalid depth moves to the nearest valid pixel this close
@@ -47,32 +47,41 @@ def seed_points(h: int, w: int) -> list[tuple[int, int]]:
     return pts
 
 
+class DepthFill:
+    """One depth crop made ready for ``cv2.floodFill`` once (``box_depth_kernels.fill_inputs``), filled from as
+    many seeds as Algorithm 1 tries: each fill starts from the crop's own invalid-depth mask."""
+
+    def __init__(self, depth: np.ndarray):
+        self.image, self._invalid = fill_inputs(np.asarray(depth))
+
+    def fill(self, seeds: np.ndarray, omega: float, max_components: int = _MAX_FILL_COMPONENTS) -> np.ndarray:
+        """Pixels reached from any of ``seeds`` ((K,2) row, col) by 8-neighbour steps whose depth change
+        is strictly below ``omega`` (neighbour-to-neighbour, Algorithm 1). Invalid depth (<= 0 or not
+        finite) is never entered; seeds on invalid depth are ignored. Returns a bool mask of the crop's
+        shape."""
+        h, w = self.image.shape
+        mask = self._invalid.copy()
+        inner = mask[1:-1, 1:-1]
+        seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
+        if len(seeds):
+            seeds = seeds[(seeds[:, 0] >= 0) & (seeds[:, 0] < h) & (seeds[:, 1] >= 0) & (seeds[:, 1] < w)]
+        # OpenCV accepts |diff| <= bound; the paper's test is strict.
+        diff = float(np.nextafter(np.float32(omega), np.float32(0)))
+        for _ in range(max_components):
+            if not len(seeds):
+                break
+            seeds = seeds[inner[seeds[:, 0], seeds[:, 1]] == 0]     # not yet filled, not invalid
+            if not len(seeds):
+                break
+            r, c = int(seeds[0, 0]), int(seeds[0, 1])
+            cv2.floodFill(self.image, mask, (c, r), 0, diff, diff, _FILL_FLAGS)
+        return inner == 255
+
+
 def flood_fill(depth: np.ndarray, seeds: np.ndarray, omega: float,
                max_components: int = _MAX_FILL_COMPONENTS) -> np.ndarray:
-    """Pixels reached from any of ``seeds`` ((K,2) row, col) by 8-neighbour steps whose depth change
-    is strictly below ``omega`` (neighbour-to-neighbour, Algorithm 1). Invalid depth (<= 0 or not
-    finite) is never entered; seeds on invalid depth are ignored. Returns a bool mask of ``depth``'s
-    shape."""
-    img = np.ascontiguousarray(depth, dtype=np.float32)
-    h, w = img.shape
-    mask = np.zeros((h + 2, w + 2), np.uint8)
-    inner = mask[1:-1, 1:-1]
-    inner[~(np.isfinite(img) & (img > 0))] = 1
-    img = np.where(inner == 1, np.float32(0), img)     # floodFill must not see NaN
-    seeds = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
-    if len(seeds):
-        seeds = seeds[(seeds[:, 0] >= 0) & (seeds[:, 0] < h) & (seeds[:, 1] >= 0) & (seeds[:, 1] < w)]
-    # OpenCV accepts |diff| <= bound; the paper's test is strict.
-    diff = float(np.nextafter(np.float32(omega), np.float32(0)))
-    for _ in range(max_components):
-        if not len(seeds):
-            break
-        seeds = seeds[inner[seeds[:, 0], seeds[:, 1]] == 0]     # not yet filled, not invalid
-        if not len(seeds):
-            break
-        r, c = int(seeds[0, 0]), int(seeds[0, 1])
-        cv2.floodFill(img, mask, (c, r), 0, diff, diff, _FILL_FLAGS)
-    return inner == 255
+    """``DepthFill(depth).fill(seeds, omega, max_components)``: one fill of one crop."""
+    return DepthFill(depth).fill(seeds, omega, max_components)
 
 
 def nearest_valid(depth: np.ndarray, row: int, col: int, radius: int = _SEED_SEARCH_PX) -> Optional[tuple[int, int]]:
@@ -159,23 +168,23 @@ def person_layer(box: tuple[int, int, int, int], depth: np.ndarray) -> Optional[
     x0, y0, x1, y1 = box
     if x1 <= x0 or y1 <= y0:
         return None
-    inside = depth[y0:y1:_LAYER_PIXEL_STEP, x0:x1:_LAYER_PIXEL_STEP].astype(float)
-    inside = inside[inside > 0]
+    inside = positive_samples(depth, y0, y1, x0, x1, _LAYER_PIXEL_STEP)   # every 2nd pixel each way, valid
     if len(inside) < 20:
         return None
     ring = _ring_depths(box, depth)
-    hist, edges = np.histogram(inside, np.arange(_LAYER_BIN_M * np.floor(inside.min() / _LAYER_BIN_M) - _LAYER_BIN_M,
-                                                 inside.max() + 2 * _LAYER_BIN_M, _LAYER_BIN_M))
+    edges = np.arange(_LAYER_BIN_M * np.floor(inside.min() / _LAYER_BIN_M) - _LAYER_BIN_M,
+                      inside.max() + 2 * _LAYER_BIN_M, _LAYER_BIN_M)
+    hist = histogram_counts(inside, edges, _LAYER_BIN_M)     # np.histogram's counts, without sorting the depths
     smooth = np.convolve(hist, np.ones(3) / 3, mode="same")
-    peak = (smooth[1:-1] >= smooth[:-2]) & (smooth[1:-1] > smooth[2:]) & (smooth[1:-1] > 0)
+    peaks = np.flatnonzero((smooth[1:-1] >= smooth[:-2]) & (smooth[1:-1] > smooth[2:]) & (smooth[1:-1] > 0)) + 1
+    centres = 0.5 * (edges[peaks] + edges[peaks + 1])
+    held = band_counts(inside, centres, _LAYER_HALF_M)
+    beyond = band_counts(ring, centres, _LAYER_HALF_M + _LAYER_RING_SLACK_M)
     best, best_score = None, -1.0
-    for k in np.flatnonzero(peak) + 1:
-        centre = 0.5 * (edges[k] + edges[k + 1])
-        held = np.count_nonzero(np.abs(inside - centre) <= _LAYER_HALF_M)
-        if held < _LAYER_MIN_SHARE * len(inside):
+    for centre, n_held, n_beyond in zip(centres.tolist(), held.tolist(), beyond.tolist()):
+        if n_held < _LAYER_MIN_SHARE * len(inside):
             continue
-        beyond = np.count_nonzero(np.abs(ring - centre) <= _LAYER_HALF_M + _LAYER_RING_SLACK_M) if len(ring) else 0
-        score = held / (held + beyond * len(inside) / max(len(ring), 1))   # the ring counted at the box's size
+        score = n_held / (n_held + n_beyond * len(inside) / max(len(ring), 1))   # the ring counted at the box's size
         if score > best_score:
             best, best_score = float(centre), score
     return best
@@ -215,11 +224,12 @@ def segment_box(depth: np.ndarray, cfg: BoxDepthConfig, layer: Optional[float] =
         if len(on):
             d2 = (on[:, 0] - h / 2) ** 2 + (on[:, 1] - w / 2) ** 2
             seeds = [tuple(on[int(np.argmin(d2))])] + list(seeds)
+    fills = DepthFill(depth)
     for k, (r, c) in enumerate(seeds):
         seed = nearest_valid(depth, r, c)
         if seed is None:
             continue
-        region = flood_fill(depth, np.array([seed]), cfg.omega_pixel)
+        region = fills.fill(np.array([seed]), cfg.omega_pixel)
         rows = np.flatnonzero(region.any(axis=1))
         span = int(rows[-1] - rows[0]) if len(rows) else -1
         if span > best_span:
