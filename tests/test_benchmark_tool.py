@@ -138,3 +138,16 @@ def test_module_timer_counts_a_waiting_block_as_wall_time_but_not_as_cpu():
     assert summary["works"]["cpu_mean_ms"] >= 30
     assert summary["total"]["cpu_mean_ms"] == pytest.approx(summary["waits"]["cpu_mean_ms"]
                                                             + summary["works"]["cpu_mean_ms"])
+
+
+def test_compile_line_shows_numba_compiling_inside_the_timed_run_only():
+    row = {"sequence": "seq", "frames": 400, "kernel_compile_s": 80.0}
+    assert benchmark.compile_line(row) == ("\nseq: numba compiled kernels for 80.0 s inside the timed run (once per "
+                                          "install; 200.0 ms of the whole run's ms per frame)")
+    assert benchmark.compile_line({**row, "kernel_compile_s": 0.1}) == ""
+    assert benchmark.compile_line({"sequence": "seq", "frames": 3}) == ""      # a row from before the field
+
+
+def test_a_failing_warm_up_names_its_command(tmp_path):
+    with pytest.raises(RuntimeError, match=r"warm-up run failed .*slam\.cli run .*missing_sequence"):
+        benchmark.warm_up(tmp_path / "missing_sequence", tmp_path / "out", [], [])

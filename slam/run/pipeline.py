@@ -50,6 +50,7 @@ import numpy as np
 
 from backend.map_io import LoadedMap
 from slam.core.config import SlamConfig
+from slam.core.kernel_compile import compile_seconds
 from slam.datasets.base import RGBDDataset, RGBDFrame, frames_of
 from slam.datasets.replay import RealtimeReplay
 from slam.run.evaluation import EvaluationReport, format_report
@@ -142,6 +143,7 @@ class Pipeline:
             try:
                 self._prepare_output()
                 start = time.perf_counter()
+                compiled_before = compile_seconds()[0]
                 try:
                     self._run_pipeline(interrupt)
                 except KeyboardInterrupt:   # raised by Python itself: no handler of ours outside the main thread
@@ -151,6 +153,7 @@ class Pipeline:
                     if self.summary.interrupted:
                         log.warning("interrupted: writing the results of the %d frames processed", self.summary.frames)
                     self.summary.wall_time_s = time.perf_counter() - start
+                    self._note_kernel_compilation(compile_seconds()[0] - compiled_before)
                     self._preload_report_imports()
                     self.system.close()
                     self._write_result_poses()
@@ -167,6 +170,12 @@ class Pipeline:
         return self.summary
 
     # --- steps ------------------------------------------------------------------------------------
+    def _note_kernel_compilation(self, seconds: float) -> None:
+        self.summary.kernel_compile_s = seconds
+        if seconds >= 1.0:
+            log.info("numba compiled the kernels in %.0f s of this run (once: later runs load them from its cache)",
+                     seconds)
+
     def _prepare_output(self) -> None:
         ensure_output_dir(self.output_dir)   # a clear error naming the folder, before any frame is read
         write_text_atomic(self.output_dir / "config.yaml", self.config.to_yaml())

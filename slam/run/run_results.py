@@ -54,6 +54,9 @@ class RunSummary:
     # Tracked frames' pose uncertainty (FrameOutput.pose_sigma_m, mm): median, p95, max and the frame of the
     # max; a weakly held stretch (few static features) shows here before it shows in the error.
     pose_sigma_mm: dict[str, float] = field(default_factory=dict)
+    # Seconds numba spent compiling this project's kernels during the run (the first run after an install; 0 when
+    # its cache had them): counted in wall_time_s, a one-time cost (slam/core/kernel_compile.py).
+    kernel_compile_s: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -32,6 +32,7 @@ from slam.core.camera import PinholeCamera
 from slam.core.config import SlamConfig
 from slam.core.frame import FeatureFrame
 from slam.core.geometry import invert
+from slam.core.kernel_compile import watch_kernel_compilation
 from slam.core.timing import ModuleTimer
 from slam.runtime.graph_process import GraphProcess, GraphSpec
 from slam.runtime.inputs import check_inputs, clean_depth, to_gray
@@ -65,6 +66,7 @@ class System:
         self.camera = PinholeCamera.from_config(config.camera)
         self.extractor = OrbExtractor(config.orb, self.camera)
         self.timer = ModuleTimer()
+        watch_kernel_compilation()   # the first run after an install compiles the kernels: say so, time it
         self._lookahead = FrameLookahead(config.orb, self.camera, self.timer)
         self.dynamic_filter = dynamic_filter or build_dynamic_filter(config, self.camera, self.timer, sequence_name,
                                                                      detector)
