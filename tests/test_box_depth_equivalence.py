@@ -209,3 +209,53 @@ def test_fills_of_a_prepared_crop_are_the_fills_of_the_crop():
             seeds = np.stack([rng.integers(-5, crop.shape[0] + 5, 3), rng.integers(-5, crop.shape[1] + 5, 3)], 1)
             got = fills.fill(seeds, 0.05)
             assert np.array_equal(got, _reference_flood_fill(crop, seeds, 0.05)), trial
+
+
+def _reference_composite(img, uv, skip_zero=False):
+    """``box_depth.composite`` as it was before it was compiled (numpy's fancy indexing and row sums)."""
+    h, w = img.shape[:2]
+    if not len(uv):
+        return np.zeros(0)
+    with np.errstate(invalid="ignore"):
+        cols = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
+        rows = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
+    dr, dc = np.meshgrid(np.arange(-1, 2), np.arange(-1, 2), indexing="ij")
+    ring = (dr != 0) | (dc != 0)
+    nr = np.clip(rows[:, None] + dr[ring][None, :], 0, h - 1)
+    nc = np.clip(cols[:, None] + dc[ring][None, :], 0, w - 1)
+    centre = img[rows, cols].astype(float)
+    neigh = img[nr, nc].astype(float)
+    if skip_zero:
+        ok = neigh > 0
+        cnt = ok.sum(axis=1)
+        with np.errstate(invalid="ignore"):
+            mean = np.where(cnt > 0, (neigh * ok).sum(axis=1) / np.maximum(cnt, 1), centre)
+        out = (centre + mean) / 2.0
+        out[~(centre > 0)] = np.nan
+        return out
+    return (centre + neigh.mean(axis=1)) / 2.0
+
+
+def test_composites_are_the_numpy_formulations():
+    """Grey (uint8), depth (float32 with zeros, NaN and negative values; float64 too, where the order of the
+    neighbours' sum shows in the bits), points at and beyond the image's
+    border, half-pixel ties of the rounding, NaN, infinite and huge coordinates (a degenerate homography's):
+    the same values to the bit (NaN where numpy gives NaN)."""
+    from frontend.dynamic.box_depth import composite
+
+    rng = np.random.default_rng(8)
+    for trial in range(30):
+        h, w = int(rng.integers(1, 60)), int(rng.integers(1, 80))
+        gray = rng.integers(0, 256, (h, w), dtype=np.uint8)
+        depth = (rng.uniform(0.3, 5.0, (h, w)) * 10 ** rng.uniform(-2, 2, (h, w))).astype(np.float32)
+        depth[rng.random((h, w)) < 0.3] = rng.choice([0.0, np.nan, -1.0])
+        uv = np.stack([rng.uniform(-3, w + 3, 200), rng.uniform(-3, h + 3, 200)], 1)
+        uv[:40] = np.round(uv[:40]) + 0.5                                     # rounding ties (to even)
+        uv[40:50] = rng.choice([np.nan, np.inf, -np.inf, 1e30, -1e30], (10, 2))
+        uv = uv.astype(np.float32 if trial % 3 == 0 else np.float64)
+        full = depth.astype(np.float64) * rng.uniform(0.5, 2.0, (h, w))      # float64: the sums' order shows
+        for img in (gray, depth, full):
+            for skip_zero in (False, True):
+                got, want = composite(img, uv, skip_zero), _reference_composite(img, uv, skip_zero)
+                assert np.array_equal(got, want, equal_nan=True), (trial, img.dtype, skip_zero)
+    assert len(composite(gray, np.zeros((0, 2)))) == 0

@@ -94,7 +94,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontend.dynamic.base import Detection, DynamicContext, MethodOutput, keypoints_in_mask
-from frontend.dynamic.box_depth_kernels import mutual_best
+from frontend.dynamic.box_depth_kernels import composite_values, mutual_best
 from frontend.dynamic.box_depth_segmentation import (box_pixels, cached_person_layer, flood_fill, image_sides,
                                                      overlaps_enough, segment_box)
 from frontend.dynamic.box_depth_segmentation import (eq8_filter, nearest_valid,  # noqa: F401  (re-exported)
@@ -114,26 +114,10 @@ _MIN_STATIC_MATCHES = 8      # static matches needed to fit the homography
 def composite(img: np.ndarray, uv: np.ndarray, skip_zero: bool = False) -> np.ndarray:
     """Eqs. 14-15: (value at the pixel + mean of its 8 neighbours) / 2 at each (N,2) point (nearest
     pixel). With ``skip_zero`` (depth) invalid neighbours are left out of the mean and an invalid
-    centre gives NaN."""
-    h, w = img.shape[:2]
+    centre gives NaN. One compiled pass (``box_depth_kernels.composite_values``, numpy's sums)."""
     if not len(uv):
         return np.zeros(0)
-    cols = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
-    rows = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
-    dr, dc = np.meshgrid(np.arange(-1, 2), np.arange(-1, 2), indexing="ij")
-    ring = (dr != 0) | (dc != 0)
-    nr = np.clip(rows[:, None] + dr[ring][None, :], 0, h - 1)
-    nc = np.clip(cols[:, None] + dc[ring][None, :], 0, w - 1)
-    centre = img[rows, cols].astype(float)
-    neigh = img[nr, nc].astype(float)
-    if skip_zero:
-        ok = neigh > 0
-        cnt = ok.sum(axis=1)
-        mean = np.where(cnt > 0, (neigh * ok).sum(axis=1) / np.maximum(cnt, 1), centre)
-        out = (centre + mean) / 2.0
-        out[~(centre > 0)] = np.nan
-        return out
-    return (centre + neigh.mean(axis=1)) / 2.0
+    return composite_values(np.ascontiguousarray(img), np.asarray(uv, np.float64).reshape(-1, 2), bool(skip_zero))
 
 
 def match_descriptors(desc_a: np.ndarray, uv_a: np.ndarray, desc_b: np.ndarray, uv_b: np.ndarray,

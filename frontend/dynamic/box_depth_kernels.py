@@ -174,3 +174,56 @@ def positive_samples(depth, y0, y1, x0, x1, step):
                 out[k] = v
                 k += 1
     return out
+
+
+@numba.njit(**_JIT)
+def _pixel_index(x, size):
+    """``np.clip(np.rint(x).astype(int), 0, size - 1)`` for one coordinate: numpy's cast of a NaN, an infinity or a
+    value beyond int64 gives int64's minimum (x86), which the clip takes to 0."""
+    r = np.rint(x)
+    i = np.int64(-9223372036854775807 - 1)
+    if r >= -9.223372036854775808e18 and r < 9.223372036854775808e18:
+        i = np.int64(r)
+    return min(max(i, 0), size - 1)
+
+
+@numba.njit(**_JIT)
+def _sum8(a0, a1, a2, a3, a4, a5, a6, a7):
+    """numpy's sum of a row of 8 float64 (its pairwise summation unrolled by 8)."""
+    return ((a0 + a1) + (a2 + a3)) + ((a4 + a5) + (a6 + a7))
+
+
+@numba.njit(**_JIT)
+def composite_values(img, uv, skip_zero):
+    """``box_depth.composite``: (the value at each point's nearest pixel + the mean of its 8 neighbours, the border
+    clamped) / 2 in float64; with ``skip_zero`` the neighbours <= 0 (or NaN) are left out of the mean (none left:
+    the centre), and a centre that is not > 0 gives NaN."""
+    h, w = img.shape
+    out = np.empty(uv.shape[0])
+    nb = np.empty(8)
+    for t in range(uv.shape[0]):
+        c = _pixel_index(uv[t, 0], w)
+        r = _pixel_index(uv[t, 1], h)
+        centre = np.float64(img[r, c])
+        k = 0
+        for dr in range(-1, 2):            # the ring in row-major order, as the numpy code lists it
+            for dc in range(-1, 2):
+                if dr == 0 and dc == 0:
+                    continue
+                nb[k] = np.float64(img[min(max(r + dr, 0), h - 1), min(max(c + dc, 0), w - 1)])
+                k += 1
+        if not skip_zero:
+            out[t] = (centre + _sum8(nb[0], nb[1], nb[2], nb[3], nb[4], nb[5], nb[6], nb[7]) / 8.0) / 2.0
+            continue
+        count = 0
+        for k in range(8):
+            if nb[k] > 0:
+                count += 1
+                nb[k] = nb[k] * 1.0
+            else:
+                nb[k] = nb[k] * 0.0             # NaN stays NaN, as numpy's value * False
+        mean = centre
+        if count > 0:
+            mean = _sum8(nb[0], nb[1], nb[2], nb[3], nb[4], nb[5], nb[6], nb[7]) / np.float64(count)
+        out[t] = (centre + mean) / 2.0 if centre > 0 else np.nan
+    return out
