@@ -19,6 +19,9 @@ from slam.core.config import BackendConfig
 from slam.core.errors import RuntimeFailure
 
 
+_MONO_HUBER_K = float(np.sqrt(5.991))   # ORB-SLAM's chi-square bound (95 %, 2 dof) for a keypoint without depth
+
+
 class BackendError(RuntimeFailure, RuntimeError):
     """The graph cannot accept a request (unknown variable, singular system, ...)."""
 
@@ -80,6 +83,7 @@ class FactorBuilder:
         self._K_stereo = gtsam.Cal3_S2Stereo(c.fx, c.fy, 0.0, c.cx, c.cy, c.baseline)
         self._K_mono = gtsam.Cal3_S2(c.fx, c.fy, 0.0, c.cx, c.cy)
         self._noise_cache: dict[tuple, gtsam.noiseModel.Base] = {}
+        self._sqrt_info_cache: dict[tuple, np.ndarray] = {}     # (sigma px, inflation) -> stereo noise's S
 
     def first_pose_prior(self, kf_id: int, T_wc: np.ndarray) -> gtsam.NonlinearFactor:
         """The tight prior on the first keyframe that fixes the gauge (where the map starts)."""
@@ -108,6 +112,26 @@ class FactorBuilder:
             return gtsam.GenericStereoFactor3D(measurement, noise, X(kf_id), L(lm_id), self._K_stereo)
         noise = self._mono_noise(round(sigma_px, 3))
         return gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(u, v), noise, X(kf_id), L(lm_id), self._K_mono)
+
+    def observation_arrays(self, uv, depth: float = 0.0, level_scale: float = 1.0,
+                           dynamic_prob: float = 0.0) -> tuple[np.ndarray, np.ndarray, float]:
+        """``observation``'s factor as arrays (``backend.window_solver``): the measurement (u_L, u_R, v; u_R 0
+        without depth), the square-root information S of its noise (S'S = covariance^-1; the u_R row 0 without
+        depth) and its Huber threshold: the same rounded sigmas as the factor's noise model."""
+        inflation = self._dynamic_inflation(dynamic_prob)
+        sigma_px = round(self.params.pixel_sigma * level_scale * inflation, 3)
+        u, v = float(uv[0]), float(uv[1])
+        if depth > 0:
+            inflation = round(inflation, 3)
+            disparity = self.calibration.fx * self.calibration.baseline / depth
+            sigma_d = self.calibration.fx * self.calibration.baseline * self.params.depth_noise_coeff * inflation
+            key = (sigma_px, inflation)
+            if key not in self._sqrt_info_cache:
+                s2 = sigma_px**2
+                cov = np.array([[s2, s2, 0.0], [s2, s2 + sigma_d**2, 0.0], [0.0, 0.0, s2]])
+                self._sqrt_info_cache[key] = np.linalg.cholesky(np.linalg.inv(cov)).T
+            return np.array([u, u - disparity, v]), self._sqrt_info_cache[key], float(self.params.huber_k)
+        return np.array([u, 0.0, v]), np.diag([1.0 / sigma_px, 0.0, 1.0 / sigma_px]), _MONO_HUBER_K
 
     @staticmethod
     def relative_pose(kf_a: int, kf_b: int, T_ab: np.ndarray, sigma_t: float, sigma_r_deg: float,
@@ -144,6 +168,6 @@ class FactorBuilder:
         key = ("mono", sigma_px)
         if key not in self._noise_cache:
             base = gtsam.noiseModel.Isotropic.Sigma(2, sigma_px)
-            huber = gtsam.noiseModel.mEstimator.Huber.Create(np.sqrt(5.991))
+            huber = gtsam.noiseModel.mEstimator.Huber.Create(_MONO_HUBER_K)
             self._noise_cache[key] = gtsam.noiseModel.Robust.Create(huber, base)
         return self._noise_cache[key]

@@ -222,6 +222,10 @@ class BackendConfig(ConfigSection):
     1e-5 -> 1e-3 cut the worker's CPU time by 28-39 %.) The final adjustment stops at
     ``WindowParams.final_relative_tol`` (1e-3: the same final trajectory within 0.25 mm as 1e-5, a third of
     its time)."""
+    window_solver: Literal["gtsam", "schur"] = "schur"
+    """What solves a window's, a loop's and the final bundle adjustment (``optimizer: window``): "gtsam",
+    GTSAM's Levenberg-Marquardt on the factor graph; "schur", the same cost and the same Levenberg-Marquardt
+    rules with the landmarks eliminated per 3x3 block in compiled loops (backend/window_solver.py)."""
     essential_min_shared: int = Field(100, ge=1)
     """Loop correction: keyframe pairs sharing this many landmarks are tied in the pose graph (ORB-SLAM: 100)."""
     final_global_ba: bool = True
