@@ -21,6 +21,7 @@ from typing import Sequence
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
+from scipy.linalg import cho_factor, cho_solve
 
 from backend import window_solver_kernels as kernels
 from backend.factors import BackendError, StereoCalibration, pose3
@@ -179,10 +180,10 @@ def solve(problem: WindowProblem, calibration: StereoCalibration, iterations: in
             W = kernels.reduced_system(n_adj, o_pose, lm_start, lm_obs, Jp, Jl, e, pb.prior_w2, prior_res, lam,
                                        S, g, Hinv, gl)
             success, stop = False, False
-            try:
-                dp = np.linalg.solve(S, g) if n_adj else np.zeros(0)
+            try:     # Cholesky, as GTSAM's: a system that is not positive definite is not solved (lambda grows)
+                dp = cho_solve(cho_factor(S), g) if n_adj else np.zeros(0)
                 solved = bool(np.all(np.isfinite(dp)))
-            except np.linalg.LinAlgError:
+            except (np.linalg.LinAlgError, ValueError):     # ValueError: a non-finite system
                 solved = False
             if solved:
                 dl = np.zeros((m, 3))
