@@ -137,6 +137,23 @@ class _PoseFactors:
         return out
 
 
+def _pose_system(linear_pose: list, n_adj: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pose factors' normal equations (A'A, A'b) on the adjusted poses' 6n unknowns; the landmarks' Schur
+    complement is added to them (``window_solver_kernels.reduced_system``)."""
+    S, g = np.zeros((6 * n_adj, 6 * n_adj)), np.zeros(6 * n_adj)
+    for A, b, rows in linear_pose:
+        idx = np.concatenate([np.arange(6 * r, 6 * r + 6) for r in rows])
+        S[np.ix_(idx, idx)] += A.T @ A
+        g[idx] += A.T @ b
+    return S, g
+
+
+def _pose_linear_cost(linear_pose: list, dp: np.ndarray) -> float:
+    """0.5 |A d - b|^2 of the pose factors' linearisation for the poses' step ``dp``."""
+    return 0.5 * sum(float(np.sum((A @ np.concatenate([dp[6 * r:6 * r + 6] for r in rows]) - b) ** 2))
+                     for A, b, rows in linear_pose)
+
+
 def solve(problem: WindowProblem, calibration: StereoCalibration, iterations: int,
           relative_tol: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Levenberg-Marquardt on ``problem``; returns (poses, points, iterations run). The fixed poses come back
@@ -171,11 +188,7 @@ def solve(problem: WindowProblem, calibration: StereoCalibration, iterations: in
         old_linear = 0.5 * float(np.sum(e * e)) + 0.5 * pb.prior_w2 * float(np.sum(prior_res * prior_res)) \
             + 0.5 * sum(float(b @ b) for _, b, _ in linear_pose)
         while True:
-            S, g = np.zeros((6 * n_adj, 6 * n_adj)), np.zeros(6 * n_adj)
-            for A, b, rows in linear_pose:
-                idx = np.concatenate([np.arange(6 * r, 6 * r + 6) for r in rows])
-                S[np.ix_(idx, idx)] += A.T @ A
-                g[idx] += A.T @ b
+            S, g = _pose_system(linear_pose, n_adj)
             Hinv, gl = np.zeros((m, 3, 3)), np.zeros((m, 3))
             W = kernels.reduced_system(n_adj, o_pose, lm_start, lm_obs, Jp, Jl, e, pb.prior_w2, prior_res, lam,
                                        S, g, Hinv, gl)
@@ -191,9 +204,7 @@ def solve(problem: WindowProblem, calibration: StereoCalibration, iterations: in
                 step = dp.reshape(-1, 6)
                 moved_prior = prior_res + dl
                 new_linear = kernels.linear_cost(o_pose, o_pt, n_adj, Jp, Jl, e, dp, dl) \
-                    + 0.5 * pb.prior_w2 * float(np.sum(moved_prior * moved_prior)) \
-                    + 0.5 * sum(float(np.sum((A @ np.concatenate([dp[6 * r:6 * r + 6] for r in rows]) - b) ** 2))
-                                for A, b, rows in linear_pose)
+                    + 0.5 * pb.prior_w2 * float(np.sum(moved_prior * moved_prior)) + _pose_linear_cost(linear_pose, dp)
                 linear_change = old_linear - new_linear
                 if linear_change >= 0:
                     new_poses = poses.copy()
