@@ -102,35 +102,27 @@ class FactorBuilder:
         """With a valid depth a virtual stereo factor (u_R = u - fx*b/z) whose noise couples u_R to u
         and adds the depth noise; without, a projection factor. ``level_scale`` (the pyramid scale of
         the keypoint) and ``dynamic_prob`` inflate the noise."""
-        inflation = self._dynamic_inflation(dynamic_prob)
-        sigma_px = self.params.pixel_sigma * level_scale * inflation
+        sigma_px, inflation = self._noise_sigmas(level_scale, dynamic_prob)
         u, v = float(uv[0]), float(uv[1])
         if depth > 0:
-            noise = self._stereo_noise(round(sigma_px, 3), round(inflation, 3))
-            disparity = self.calibration.fx * self.calibration.baseline / depth
-            measurement = gtsam.StereoPoint2(u, u - disparity, v)
-            return gtsam.GenericStereoFactor3D(measurement, noise, X(kf_id), L(lm_id), self._K_stereo)
-        noise = self._mono_noise(round(sigma_px, 3))
+            measurement = gtsam.StereoPoint2(u, u - self._disparity(depth), v)
+            return gtsam.GenericStereoFactor3D(measurement, self._stereo_noise(sigma_px, inflation), X(kf_id),
+                                               L(lm_id), self._K_stereo)
+        noise = self._mono_noise(sigma_px)
         return gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(u, v), noise, X(kf_id), L(lm_id), self._K_mono)
 
     def observation_arrays(self, uv, depth: float = 0.0, level_scale: float = 1.0,
                            dynamic_prob: float = 0.0) -> tuple[np.ndarray, np.ndarray, float]:
         """``observation``'s factor as arrays (``backend.window_solver``): the measurement (u_L, u_R, v; u_R 0
         without depth), the square-root information S of its noise (S'S = covariance^-1; the u_R row 0 without
-        depth) and its Huber threshold: the same rounded sigmas as the factor's noise model."""
-        inflation = self._dynamic_inflation(dynamic_prob)
-        sigma_px = round(self.params.pixel_sigma * level_scale * inflation, 3)
+        depth) and its Huber threshold: the same noise as the factor's."""
+        sigma_px, inflation = self._noise_sigmas(level_scale, dynamic_prob)
         u, v = float(uv[0]), float(uv[1])
         if depth > 0:
-            inflation = round(inflation, 3)
-            disparity = self.calibration.fx * self.calibration.baseline / depth
-            sigma_d = self.calibration.fx * self.calibration.baseline * self.params.depth_noise_coeff * inflation
             key = (sigma_px, inflation)
             if key not in self._sqrt_info_cache:
-                s2 = sigma_px**2
-                cov = np.array([[s2, s2, 0.0], [s2, s2 + sigma_d**2, 0.0], [0.0, 0.0, s2]])
-                self._sqrt_info_cache[key] = np.linalg.cholesky(np.linalg.inv(cov)).T
-            return np.array([u, u - disparity, v]), self._sqrt_info_cache[key], float(self.params.huber_k)
+                self._sqrt_info_cache[key] = np.linalg.cholesky(np.linalg.inv(self._stereo_covariance(*key))).T
+            return np.array([u, u - self._disparity(depth), v]), self._sqrt_info_cache[key], float(self.params.huber_k)
         return np.array([u, 0.0, v]), np.diag([1.0 / sigma_px, 0.0, 1.0 / sigma_px]), _MONO_HUBER_K
 
     @staticmethod
@@ -151,15 +143,25 @@ class FactorBuilder:
         p = min(max(float(p), 0.0), 1.0)
         return min(1.0 / max(1.0 - p, 1e-6), np.sqrt(self.params.max_dynamic_inflation))
 
+    def _noise_sigmas(self, level_scale: float, dynamic_prob: float) -> tuple[float, float]:
+        """(pixel sigma, inflation) of an observation, rounded to 3 decimals: the noise models' cache keys."""
+        inflation = self._dynamic_inflation(dynamic_prob)
+        return round(self.params.pixel_sigma * level_scale * inflation, 3), round(inflation, 3)
+
+    def _disparity(self, depth: float) -> float:
+        return self.calibration.fx * self.calibration.baseline / depth
+
+    def _stereo_covariance(self, sigma_px: float, inflation: float) -> np.ndarray:
+        """u_R = u_L - d shares u_L's pixel noise; the disparity adds the sensor's depth noise,
+        sigma_d = fx*b*sigma_z/z^2 with sigma_z = c*z^2, which makes it depth-independent."""
+        sigma_d = self.calibration.fx * self.calibration.baseline * self.params.depth_noise_coeff * inflation
+        s2 = sigma_px**2
+        return np.array([[s2, s2, 0.0], [s2, s2 + sigma_d**2, 0.0], [0.0, 0.0, s2]])
+
     def _stereo_noise(self, sigma_px: float, inflation: float):
         key = ("stereo", sigma_px, inflation)
         if key not in self._noise_cache:
-            # u_R = u_L - d shares u_L's pixel noise; the disparity adds the sensor's depth noise,
-            # sigma_d = fx*b*sigma_z/z^2 with sigma_z = c*z^2, which makes it depth-independent.
-            sigma_d = self.calibration.fx * self.calibration.baseline * self.params.depth_noise_coeff * inflation
-            s2 = sigma_px**2
-            cov = np.array([[s2, s2, 0.0], [s2, s2 + sigma_d**2, 0.0], [0.0, 0.0, s2]])
-            base = gtsam.noiseModel.Gaussian.Covariance(cov)
+            base = gtsam.noiseModel.Gaussian.Covariance(self._stereo_covariance(sigma_px, inflation))
             huber = gtsam.noiseModel.mEstimator.Huber.Create(self.params.huber_k)
             self._noise_cache[key] = gtsam.noiseModel.Robust.Create(huber, base)
         return self._noise_cache[key]

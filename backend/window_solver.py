@@ -16,7 +16,7 @@ Fixed keyframes are constants here (GTSAM holds them with a 1e-6 prior, which mo
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Optional, Sequence
 
 import gtsam
 import numpy as np
@@ -154,61 +154,67 @@ def _pose_linear_cost(linear_pose: list, dp: np.ndarray) -> float:
                      for A, b, rows in linear_pose)
 
 
+class _Observations:
+    """The observation factors of one problem, linearised where their cost is evaluated: a trial step's cost
+    leaves its Jacobians in ``trial``, which become ``current`` when the step is kept (each point is
+    linearised once)."""
+
+    def __init__(self, pb: WindowProblem, calibration: StereoCalibration):
+        c = calibration
+        self.n_adj, m = pb.n_adj, len(pb.points)
+        order = np.argsort(pb.o_pt, kind="stable")                 # observations grouped by landmark
+        self.lm_start = np.searchsorted(pb.o_pt[order], np.arange(m + 1)).astype(np.int64)
+        self.lm_obs = order.astype(np.int64)
+        self.o_pose, self.o_pt = pb.o_pose.astype(np.int64), pb.o_pt.astype(np.int64)
+        k = len(self.o_pose)
+        self.current = (np.zeros((k, 3, 6)), np.zeros((k, 3, 3)), np.zeros((k, 3)))     # Jp, Jl, e
+        self.trial = (np.zeros((k, 3, 6)), np.zeros((k, 3, 3)), np.zeros((k, 3)))
+        self._args = (pb.meas, pb.sqrt_info, pb.huber_k, c.fx, c.fy, c.cx, c.cy, c.baseline)
+
+    def trial_cost(self, poses: np.ndarray, points: np.ndarray) -> float:
+        return kernels.linearize(poses, self.n_adj, points, self.o_pose, self.o_pt, *self._args, *self.trial)
+
+    def keep_trial(self) -> None:
+        self.current, self.trial = self.trial, self.current
+
+
 def solve(problem: WindowProblem, calibration: StereoCalibration, iterations: int,
           relative_tol: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Levenberg-Marquardt on ``problem``; returns (poses, points, iterations run). The fixed poses come back
     unchanged."""
     pb = problem
-    c = calibration
-    n_adj, m = pb.n_adj, len(pb.points)
-    order = np.argsort(pb.o_pt, kind="stable")                 # observations grouped by landmark
-    lm_start = np.searchsorted(pb.o_pt[order], np.arange(m + 1)).astype(np.int64)
-    lm_obs = order.astype(np.int64)
-    o_pose, o_pt = pb.o_pose.astype(np.int64), pb.o_pt.astype(np.int64)
-    k = len(o_pose)
-    Jp, Jl, e = np.zeros((k, 3, 6)), np.zeros((k, 3, 3)), np.zeros((k, 3))
-    sJp, sJl, se = np.zeros((k, 3, 6)), np.zeros((k, 3, 3)), np.zeros((k, 3))    # scratch for trial costs
+    n_adj = pb.n_adj
+    obs = _Observations(pb, calibration)
     pose_factors = _PoseFactors(pb.pose_factors, pb.pose_ids, n_adj, pb.poses)
-    args = (pb.meas, pb.sqrt_info, pb.huber_k, c.fx, c.fy, c.cx, c.cy, c.baseline)
 
     def cost_of(poses, points) -> float:
-        obs = kernels.linearize(poses, n_adj, points, o_pose, o_pt, *args, sJp, sJl, se)
         res = points - pb.prior_xyz
-        return obs + 0.5 * pb.prior_w2 * float(np.sum(res * res)) + pose_factors.cost(poses)
+        return obs.trial_cost(poses, points) + 0.5 * pb.prior_w2 * float(np.sum(res * res)) + pose_factors.cost(poses)
 
     poses, points = pb.poses.copy(), pb.points.copy()
     lam = _LAMBDA_INITIAL
     current = cost_of(poses, points)
+    obs.keep_trial()
     done = 0
     while done < iterations:
         before = current
-        kernels.linearize(poses, n_adj, points, o_pose, o_pt, *args, Jp, Jl, e)     # Jp, Jl, e at the estimate
         prior_res = points - pb.prior_xyz
         linear_pose = pose_factors.linearize(poses)
+        e = obs.current[2]
         old_linear = 0.5 * float(np.sum(e * e)) + 0.5 * pb.prior_w2 * float(np.sum(prior_res * prior_res)) \
             + 0.5 * sum(float(b @ b) for _, b, _ in linear_pose)
         while True:
-            S, g = _pose_system(linear_pose, n_adj)
-            Hinv, gl = np.zeros((m, 3, 3)), np.zeros((m, 3))
-            W = kernels.reduced_system(n_adj, o_pose, lm_start, lm_obs, Jp, Jl, e, pb.prior_w2, prior_res, lam,
-                                       S, g, Hinv, gl)
+            step = _damped_step(obs, pb.prior_w2, prior_res, linear_pose, lam)
             success, stop = False, False
-            try:     # Cholesky, as GTSAM's: a system that is not positive definite is not solved (lambda grows)
-                dp = cho_solve(cho_factor(S), g) if n_adj else np.zeros(0)
-                solved = bool(np.all(np.isfinite(dp)))
-            except (np.linalg.LinAlgError, ValueError):     # ValueError: a non-finite system
-                solved = False
-            if solved:
-                dl = np.zeros((m, 3))
-                kernels.back_substitute(n_adj, o_pose, lm_start, lm_obs, W, Hinv, gl, dp, dl)
-                step = dp.reshape(-1, 6)
+            if step is not None:
+                dp, dl = step
                 moved_prior = prior_res + dl
-                new_linear = kernels.linear_cost(o_pose, o_pt, n_adj, Jp, Jl, e, dp, dl) \
+                new_linear = kernels.linear_cost(obs.o_pose, obs.o_pt, n_adj, *obs.current, dp, dl) \
                     + 0.5 * pb.prior_w2 * float(np.sum(moved_prior * moved_prior)) + _pose_linear_cost(linear_pose, dp)
                 linear_change = old_linear - new_linear
                 if linear_change >= 0:
                     new_poses = poses.copy()
-                    new_poses[:n_adj] = _retract(poses[:n_adj], step)
+                    new_poses[:n_adj] = _retract(poses[:n_adj], dp.reshape(-1, 6))
                     new_points = points + dl
                     new_cost = cost_of(new_poses, new_points)
                     cost_change = current - new_cost
@@ -219,6 +225,7 @@ def solve(problem: WindowProblem, calibration: StereoCalibration, iterations: in
                     stop = abs(cost_change) < relative_tol * current
             if success:
                 poses, points, current = new_poses, new_points, new_cost
+                obs.keep_trial()                 # the new estimate's linearisation, made by its cost
                 lam = lam / _LAMBDA_FACTOR
                 break
             if stop:
@@ -233,3 +240,23 @@ def solve(problem: WindowProblem, calibration: StereoCalibration, iterations: in
     if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(points))):
         raise BackendError("local bundle adjustment failed: the window's solution is not finite")
     return poses, points, done
+
+
+def _damped_step(obs: _Observations, prior_w2: float, prior_res: np.ndarray, linear_pose: list,
+                 lam: float) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    """The step (poses' dp (6n), landmarks' dl (M,3)) of the system damped by ``lam``; None when it is not
+    positive definite or not finite (GTSAM's Cholesky fails there too, and lambda grows)."""
+    m = len(obs.lm_start) - 1
+    S, g = _pose_system(linear_pose, obs.n_adj)
+    Hinv, gl = np.zeros((m, 3, 3)), np.zeros((m, 3))
+    W = kernels.reduced_system(obs.n_adj, obs.o_pose, obs.lm_start, obs.lm_obs, *obs.current, prior_w2, prior_res,
+                               lam, S, g, Hinv, gl)
+    try:
+        dp = cho_solve(cho_factor(S), g) if obs.n_adj else np.zeros(0)
+    except (np.linalg.LinAlgError, ValueError):     # ValueError: a non-finite system
+        return None
+    if not np.all(np.isfinite(dp)):
+        return None
+    dl = np.zeros((m, 3))
+    kernels.back_substitute(obs.n_adj, obs.o_pose, obs.lm_start, obs.lm_obs, W, Hinv, gl, dp, dl)
+    return dp, dl

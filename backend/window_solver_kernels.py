@@ -20,6 +20,47 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
+def _projection_row(T, p, x, y, z, gx, gy, gz, Jp_row, Jl_row):
+    """The Jacobians of one projection row whose derivative by the point in the camera is (gx, gy, gz):
+    d(pc)/d(pose) = [skew(pc), -I] (rows (0, -z, y), (z, 0, -x), (-y, x, 0) for the rotation), d(pc)/d(point) =
+    R', so column c of the point's row is g . (row c of R)."""
+    Jp_row[0] = gy * z - gz * y
+    Jp_row[1] = gz * x - gx * z
+    Jp_row[2] = gx * y - gy * x
+    Jp_row[3] = -gx
+    Jp_row[4] = -gy
+    Jp_row[5] = -gz
+    for c in range(3):
+        Jl_row[c] = gx * T[p, c, 0] + gy * T[p, c, 1] + gz * T[p, c, 2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _whiten(S, raw_r, raw_Jp, raw_Jl, k, e, Jp, Jl):
+    """e = S r, J = S J_raw, then GTSAM's Huber block reweighting (every row by sqrt(w) beyond ``k``); returns
+    the factor's cost (0.5 |e|^2 inside, k (|e| - k / 2) beyond)."""
+    sq = 0.0
+    for r in range(3):
+        v = S[r, 0] * raw_r[0] + S[r, 1] * raw_r[1] + S[r, 2] * raw_r[2]
+        e[r] = v
+        sq += v * v
+        for c in range(6):
+            Jp[r, c] = S[r, 0] * raw_Jp[0, c] + S[r, 1] * raw_Jp[1, c] + S[r, 2] * raw_Jp[2, c]
+        for c in range(3):
+            Jl[r, c] = S[r, 0] * raw_Jl[0, c] + S[r, 1] * raw_Jl[1, c] + S[r, 2] * raw_Jl[2, c]
+    norm = math.sqrt(sq)
+    if norm <= k:
+        return 0.5 * sq
+    w = math.sqrt(k / norm)
+    for r in range(3):
+        e[r] *= w
+        for c in range(6):
+            Jp[r, c] *= w
+        for c in range(3):
+            Jl[r, c] *= w
+    return k * (norm - 0.5 * k)
+
+
+@numba.njit(cache=True, nogil=True)
 def linearize(T, n_adj, points, o_pose, o_pt, meas, sqrt_info, huber_k, fx, fy, cx, cy, baseline,
               Jp, Jl, e):
     """Every observation's whitened, reweighted Jacobians (``Jp`` (K,3,6) on its pose, zero for a fixed one,
@@ -38,76 +79,22 @@ def linearize(T, n_adj, points, o_pose, o_pt, meas, sqrt_info, huber_k, fx, fy, 
         x = T[p, 0, 0] * d0 + T[p, 1, 0] * d1 + T[p, 2, 0] * d2     # R' (point - t)
         y = T[p, 0, 1] * d0 + T[p, 1, 1] * d1 + T[p, 2, 1] * d2
         z = T[p, 0, 2] * d0 + T[p, 1, 2] * d1 + T[p, 2, 2] * d2
-        for r in range(3):
-            for c in range(6):
-                raw_Jp[r, c] = 0.0
-            for c in range(3):
-                raw_Jl[r, c] = 0.0
         if z <= 0.0:
             raw_r[0] = raw_r[1] = raw_r[2] = 2.0 * fx
+            raw_Jp[:] = 0.0
+            raw_Jl[:] = 0.0
         else:
             iz = 1.0 / z
             raw_r[0] = fx * x * iz + cx - meas[i, 0]
             raw_r[1] = fx * (x - baseline) * iz + cx - meas[i, 1]
             raw_r[2] = fy * y * iz + cy - meas[i, 2]
-            # d(projection)/d(point in the camera), rows u_L, u_R, v
-            a00, a02 = fx * iz, -fx * x * iz * iz
-            a10, a12 = fx * iz, -fx * (x - baseline) * iz * iz
-            a21, a22 = fy * iz, -fy * y * iz * iz
-            # d(point in the camera)/d(pose) = [skew(pc), -I]; /d(point) = R'
-            # row u_L: a00 d(x) + a02 d(z), with d(pc)/dw = skew(pc) (rows (0, -z, y), (z, 0, -x), (-y, x, 0))
-            raw_Jp[0, 0] = -a02 * y
-            raw_Jp[0, 1] = a02 * x - a00 * z
-            raw_Jp[0, 2] = a00 * y
-            raw_Jp[0, 3] = -a00
-            raw_Jp[0, 4] = 0.0
-            raw_Jp[0, 5] = -a02
-            raw_Jp[1, 0] = -a12 * y
-            raw_Jp[1, 1] = a12 * x - a10 * z
-            raw_Jp[1, 2] = a10 * y
-            raw_Jp[1, 3] = -a10
-            raw_Jp[1, 4] = 0.0
-            raw_Jp[1, 5] = -a12
-            raw_Jp[2, 0] = a21 * z - a22 * y
-            raw_Jp[2, 1] = a22 * x
-            raw_Jp[2, 2] = -a21 * x
-            raw_Jp[2, 3] = 0.0
-            raw_Jp[2, 4] = -a21
-            raw_Jp[2, 5] = -a22
-            for c in range(3):
-                rc0, rc1, rc2 = T[p, c, 0], T[p, c, 1], T[p, c, 2]      # column c of R' is row c of R
-                raw_Jl[0, c] = a00 * rc0 + a02 * rc2
-                raw_Jl[1, c] = a10 * rc0 + a12 * rc2
-                raw_Jl[2, c] = a21 * rc1 + a22 * rc2
-        # whiten: S r, S J
-        sq = 0.0
-        for r in range(3):
-            v = sqrt_info[i, r, 0] * raw_r[0] + sqrt_info[i, r, 1] * raw_r[1] + sqrt_info[i, r, 2] * raw_r[2]
-            e[i, r] = v
-            sq += v * v
-            for c in range(6):
-                Jp[i, r, c] = (sqrt_info[i, r, 0] * raw_Jp[0, c] + sqrt_info[i, r, 1] * raw_Jp[1, c]
-                               + sqrt_info[i, r, 2] * raw_Jp[2, c])
-            for c in range(3):
-                Jl[i, r, c] = (sqrt_info[i, r, 0] * raw_Jl[0, c] + sqrt_info[i, r, 1] * raw_Jl[1, c]
-                               + sqrt_info[i, r, 2] * raw_Jl[2, c])
-        norm = math.sqrt(sq)
-        k = huber_k[i]
-        if norm <= k:
-            cost += 0.5 * sq
-        else:
-            cost += k * (norm - 0.5 * k)
-            w = math.sqrt(k / norm)
-            for r in range(3):
-                e[i, r] *= w
-                for c in range(6):
-                    Jp[i, r, c] *= w
-                for c in range(3):
-                    Jl[i, r, c] *= w
+            # rows u_L, u_R, v: d(projection)/d(point in the camera)
+            _projection_row(T, p, x, y, z, fx * iz, 0.0, -fx * x * iz * iz, raw_Jp[0], raw_Jl[0])
+            _projection_row(T, p, x, y, z, fx * iz, 0.0, -fx * (x - baseline) * iz * iz, raw_Jp[1], raw_Jl[1])
+            _projection_row(T, p, x, y, z, 0.0, fy * iz, -fy * y * iz * iz, raw_Jp[2], raw_Jl[2])
+        cost += _whiten(sqrt_info[i], raw_r, raw_Jp, raw_Jl, huber_k[i], e[i], Jp[i], Jl[i])
         if p >= n_adj:
-            for r in range(3):
-                for c in range(6):
-                    Jp[i, r, c] = 0.0
+            Jp[i] = 0.0
     return cost
 
 
@@ -128,14 +115,9 @@ def _inverse3(A, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def reduced_system(n_adj, o_pose, lm_start, lm_obs, Jp, Jl, e, prior_w2, prior_res, lam, S, g, Hinv, gl):
-    """The pose system with every landmark eliminated (Schur complement), damped by ``lam`` on every variable
-    (GTSAM's LM without diagonal damping): ``S`` (6n, 6n) and ``g`` (6n) are added to in place (they hold the
-    pose-only factors already). Per landmark (observations ``lm_obs[lm_start[j]:lm_start[j+1]]``) keeps its
-    damped block's inverse ``Hinv`` (M,3,3) and its gradient ``gl`` (M,3) for the back-substitution; its
-    prior is ``prior_w2 * |x - x0|^2 / 2`` with ``prior_res`` = x - x0 (M,3)."""
-    n_pts = len(lm_start) - 1
-    for i in range(len(o_pose)):                 # the observations' pose blocks
+def _pose_blocks(n_adj, o_pose, Jp, e, S, g):
+    """Every observation's own pose block Jp'Jp and gradient -Jp'e, added to ``S`` and ``g``."""
+    for i in range(len(o_pose)):
         p = o_pose[i]
         if p >= n_adj:
             continue
@@ -149,6 +131,17 @@ def reduced_system(n_adj, o_pose, lm_start, lm_obs, Jp, Jl, e, prior_w2, prior_r
                 for r in range(3):
                     h += Jp[i, r, a] * Jp[i, r, b]
                 S[6 * p + a, 6 * p + b] += h
+
+
+@numba.njit(cache=True, nogil=True)
+def reduced_system(n_adj, o_pose, lm_start, lm_obs, Jp, Jl, e, prior_w2, prior_res, lam, S, g, Hinv, gl):
+    """The pose system with every landmark eliminated (Schur complement), damped by ``lam`` on every variable
+    (GTSAM's LM without diagonal damping): ``S`` (6n, 6n) and ``g`` (6n) are added to in place (they hold the
+    pose-only factors already). Per landmark (observations ``lm_obs[lm_start[j]:lm_start[j+1]]``) keeps its
+    damped block's inverse ``Hinv`` (M,3,3) and its gradient ``gl`` (M,3) for the back-substitution; its
+    prior is ``prior_w2 * |x - x0|^2 / 2`` with ``prior_res`` = x - x0 (M,3)."""
+    n_pts = len(lm_start) - 1
+    _pose_blocks(n_adj, o_pose, Jp, e, S, g)
     for k in range(6 * n_adj):
         S[k, k] += lam
     H = np.zeros((3, 3))
