@@ -252,7 +252,7 @@ def _damped_step(obs: _Observations, prior_w2: float, prior_res: np.ndarray, lin
     W = kernels.reduced_system(obs.n_adj, obs.o_pose, obs.lm_start, obs.lm_obs, *obs.current, prior_w2, prior_res,
                                lam, S, g, Hinv, gl)
     try:
-        dp = cho_solve(cho_factor(S), g) if obs.n_adj else np.zeros(0)
+        dp = cho_solve(cho_factor(S, lower=False), g) if obs.n_adj else np.zeros(0)   # reads S's upper triangle
     except (np.linalg.LinAlgError, ValueError):     # ValueError: a non-finite system
         return None
     if not np.all(np.isfinite(dp)):

@@ -137,7 +137,9 @@ def _pose_blocks(n_adj, o_pose, Jp, e, S, g):
 def reduced_system(n_adj, o_pose, lm_start, lm_obs, Jp, Jl, e, prior_w2, prior_res, lam, S, g, Hinv, gl):
     """The pose system with every landmark eliminated (Schur complement), damped by ``lam`` on every variable
     (GTSAM's LM without diagonal damping): ``S`` (6n, 6n) and ``g`` (6n) are added to in place (they hold the
-    pose-only factors already). Per landmark (observations ``lm_obs[lm_start[j]:lm_start[j+1]]``) keeps its
+    pose-only factors already). The landmarks' blocks go to ``S``'s upper triangle only (its diagonal blocks
+    whole): the Cholesky factorisation reads nothing else, and the mirrored copy, a column-wise write, cost a quarter
+    of the kernel's time on a final adjustment (Bonn crowd-480, 5,348 landmarks: 35 -> 27 ms). Per landmark (observations ``lm_obs[lm_start[j]:lm_start[j+1]]``) keeps its
     damped block's inverse ``Hinv`` (M,3,3) and its gradient ``gl`` (M,3) for the back-substitution; its
     prior is ``prior_w2 * |x - x0|^2 / 2`` with ``prior_res`` = x - x0 (M,3)."""
     n_pts = len(lm_start) - 1
@@ -182,15 +184,20 @@ def reduced_system(n_adj, o_pose, lm_start, lm_obs, Jp, Jl, e, prior_w2, prior_r
                 v1 = W[s, a, 0] * Hi[0, 1] + W[s, a, 1] * Hi[1, 1] + W[s, a, 2] * Hi[2, 1]
                 v2 = W[s, a, 0] * Hi[0, 2] + W[s, a, 1] * Hi[1, 2] + W[s, a, 2] * Hi[2, 2]
                 g[6 * pi + a] -= v0 * gl[j, 0] + v1 * gl[j, 1] + v2 * gl[j, 2]
-                for t in range(s, lm_start[j + 1]):      # the pair (t, s) is the transpose: mirrored below
+                for t in range(s, lm_start[j + 1]):      # the pair (t, s) is the transpose of (s, t)
                     pj = o_pose[lm_obs[t]]
                     if pj >= n_adj:
                         continue
                     for b in range(6):
                         update = v0 * W[t, b, 0] + v1 * W[t, b, 1] + v2 * W[t, b, 2]
-                        S[6 * pi + a, 6 * pj + b] -= update
-                        if t != s:
+                        if pi < pj:
+                            S[6 * pi + a, 6 * pj + b] -= update
+                        elif pi > pj:
                             S[6 * pj + b, 6 * pi + a] -= update
+                        else:                           # a diagonal block: both orders
+                            S[6 * pi + a, 6 * pj + b] -= update
+                            if t != s:
+                                S[6 * pj + b, 6 * pi + a] -= update
     return W
 
 
