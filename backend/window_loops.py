@@ -3,8 +3,8 @@ bundle adjustment of the span, and taking a removed loop's correction back.
 
 ``LoopCorrection`` is a mixin: it works on the window back end's own state (poses and points as growing
 arrays, observation indexes, relative-pose factors) and is not meant to be used on its own. It lives
-apart because loop correction is a job of its own (ORB-SLAM's ``CorrectLoop`` + essential graph),
-while the window module keeps the per-keyframe adjustment.
+apart because loop correction is a job of its own (ORB-SLAM's ``CorrectLoop`` + essential graph);
+its bundle adjustments go through ``window_adjust.WindowAdjustment._adjust`` like every window's.
 """
 from __future__ import annotations
 
