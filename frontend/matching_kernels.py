@@ -1,12 +1,13 @@
-"""Compiled kernel of the match by projection (numba): from the k-d tree's candidate pairs to one map point per
-keypoint.
+"""Compiled kernel of the match by projection (numba): from the projected map points to one map point per keypoint.
 
-``choose_projection_matches`` does in one pass over the pairs what ``matching.search_by_projection`` did with
-~15 whole-array steps on 25,000 pairs a call (fr1/rpy: ~2.4 calls a frame, 4.2 ms of the tracking thread's
-CPU per frame besides the tree): the radius and pyramid-level tests, the Hamming distances, the best and
-second-best candidate of each map point, the ratio test and the best map point of each keypoint. Ties resolve
-as the stable sorts did: of equal distances the pair the tree lists first, of equal winners the lower map
-point. GIL released, cached on disk, no ``fastmath`` (see ``frontend/dynamic/cpr_cloud_kernels.py``).
+``match_by_projection`` does in one pass what ``matching.search_by_projection`` did with two k-d trees, their
+pair list (~25,000 pairs a call, most beyond the point's own radius: the list's radius is that of the coarsest
+level) and a pass over the pairs: the candidates come from a grid of the keypoints, then the radius and
+pyramid-level tests, the Hamming distances, the best and second-best candidate of each map point, the ratio test
+and the best map point of each keypoint. Ties resolve as they did: of equally similar candidates a point takes the
+one the k-d tree listed first, i.e. the one earlier in its leaf order (``matching.search_by_projection`` passes
+that order as ``tie_rank``), of equal winners a keypoint keeps the lower map point. GIL released, cached on disk, no
+``fastmath`` (see ``frontend/dynamic/cpr_cloud_kernels.py``).
 """
 from __future__ import annotations
 
@@ -26,35 +27,88 @@ def _popcount64(x):
     return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
 
 
-@numba.njit(**_JIT)
-def choose_projection_matches(pi, ki, dist_px, radius, point_scale, point_octaves, frame_octaves, check_levels,
-                              max_level_gap, point_words, frame_words, max_distance, ratio):
-    """For candidate pairs (map point ``pi[t]``, keypoint ``ki[t]``, ``dist_px[t]`` pixels apart) in the tree's
-    order: (keypoint of each map point or -1, its Hamming distance or -1), over ``len(point_scale)`` map points.
+_CELL_PX = 16.0
+"""Side of the grid cells the eligible keypoints are bucketed in (ORB-SLAM's GetFeaturesInArea grid is ~10 px):
+a local-map search (4 px x the level's scale) reads 2 x 2 to 3 x 3 cells, a motion-model search (15-30 px) up to
+~15 x 15 on the coarsest level."""
 
-    A pair counts when it lies within ``radius`` times the point's scale and (``check_levels``) the keypoint's
-    pyramid level is within ``max_level_gap`` of the point's; a point takes its least distant keypoint if at
-    most ``max_distance`` and, when its runner-up lies on the same level, at most ``ratio`` times the
-    runner-up's distance; a keypoint keeps the least distant of the points that took it."""
+
+@numba.njit(**_JIT)
+def _keypoint_grid(kp_uv, width, height, cell):
+    """Eligible keypoints bucketed by grid cell (a counting sort, each cell's keypoints in ascending order):
+    (columns, rows, start of every cell's run in ``order`` (cells + 1), ``order``). A keypoint outside the image
+    (undistorted coordinates may be) goes to the nearest border cell, where a search that reaches past the
+    border looks."""
+    cols = max(1, int(np.ceil(width / cell)))
+    rows = max(1, int(np.ceil(height / cell)))
+    n = kp_uv.shape[0]
+    cell_of = np.empty(n, np.int64)
+    counts = np.zeros(cols * rows + 1, np.int64)
+    for t in range(n):
+        cx = min(max(int(np.floor(kp_uv[t, 0] / cell)), 0), cols - 1)
+        cy = min(max(int(np.floor(kp_uv[t, 1] / cell)), 0), rows - 1)
+        cell_of[t] = cy * cols + cx
+        counts[cell_of[t] + 1] += 1
+    for c in range(cols * rows):
+        counts[c + 1] += counts[c]
+    fill = counts[:-1].copy()
+    order = np.empty(n, np.int64)
+    for t in range(n):
+        order[fill[cell_of[t]]] = t
+        fill[cell_of[t]] += 1
+    return cols, rows, counts, order
+
+
+@numba.njit(**_JIT)
+def match_by_projection(vis_idx, uv, kp_idx, kp_uv, tie_rank, radius, point_scale, point_octaves, frame_octaves,
+                        check_levels, max_level_gap, point_words, frame_words, max_distance, ratio, width, height):
+    """The map points ``vis_idx`` (projected to ``uv``, one row each) against the eligible keypoints ``kp_idx``
+    (at ``kp_uv``): (keypoint of each of the ``len(point_scale)`` map points or -1, its Hamming distance or -1).
+
+    A keypoint is a candidate of a point when it lies within ``radius`` times the point's scale (Euclidean, the
+    distance a k-d tree reports) and (``check_levels``) its pyramid level is within ``max_level_gap`` of the
+    point's; a point takes its least distant candidate (of equal distances the one of lower ``tie_rank``) if at most
+    ``max_distance`` and, when its runner-up lies on the same level, at most ``ratio`` times the runner-up's
+    distance; a keypoint keeps the least distant of the points that took it (of equal distances the lower map
+    point). Candidates come from a grid of the keypoints (``_keypoint_grid``), so no pair list is built."""
     m = point_scale.shape[0]
     best = np.full(m, -1, np.int64)              # per map point: its best and second keypoint, their distances
     second = np.full(m, -1, np.int64)
     best_h = np.zeros(m, np.int64)
     second_h = np.zeros(m, np.int64)
-    for t in range(pi.shape[0]):
-        p, k = pi[t], ki[t]
-        if not dist_px[t] <= radius * point_scale[p]:
-            continue
-        if check_levels and abs(frame_octaves[k] - point_octaves[p]) > max_level_gap:
-            continue
-        h = 0
-        for j in range(point_words.shape[1]):
-            h += _popcount64(point_words[p, j] ^ frame_words[k, j])
-        if best[p] < 0 or h < best_h[p]:         # (distance, tree order): a later equal pair ranks after
-            second[p], second_h[p] = best[p], best_h[p]
-            best[p], best_h[p] = k, h
-        elif second[p] < 0 or h < second_h[p]:
-            second[p], second_h[p] = k, h
+    best_r = np.zeros(m, np.int64)
+    second_r = np.zeros(m, np.int64)
+    cell = _CELL_PX
+    cols, rows, starts, order = _keypoint_grid(kp_uv, width, height, cell)
+    for i in range(vis_idx.shape[0]):
+        p = vis_idx[i]
+        u, v = uv[i, 0], uv[i, 1]
+        reach = radius * point_scale[p]
+        c0 = min(max(int(np.floor((u - reach) / cell)), 0), cols - 1)
+        c1 = min(max(int(np.floor((u + reach) / cell)), 0), cols - 1)
+        r0 = min(max(int(np.floor((v - reach) / cell)), 0), rows - 1)
+        r1 = min(max(int(np.floor((v + reach) / cell)), 0), rows - 1)
+        for cy in range(r0, r1 + 1):
+            for cx in range(c0, c1 + 1):
+                c = cy * cols + cx
+                for s in range(starts[c], starts[c + 1]):
+                    t = order[s]
+                    dx, dy = kp_uv[t, 0] - u, kp_uv[t, 1] - v
+                    if not np.sqrt(dx * dx + dy * dy) <= reach:
+                        continue
+                    k = kp_idx[t]
+                    if check_levels and abs(frame_octaves[k] - point_octaves[p]) > max_level_gap:
+                        continue
+                    h = 0
+                    for j in range(point_words.shape[1]):
+                        h += _popcount64(point_words[p, j] ^ frame_words[k, j])
+                    # ranked by (descriptor distance, tie rank): the grid's reading order decides nothing
+                    r = tie_rank[t]
+                    if best[p] < 0 or h < best_h[p] or (h == best_h[p] and r < best_r[p]):
+                        second[p], second_h[p], second_r[p] = best[p], best_h[p], best_r[p]
+                        best[p], best_h[p], best_r[p] = k, h, r
+                    elif second[p] < 0 or h < second_h[p] or (h == second_h[p] and r < second_r[p]):
+                        second[p], second_h[p], second_r[p] = k, h, r
     winner = np.full(frame_octaves.shape[0], -1, np.int64)   # per keypoint: the map point that keeps it
     for p in range(m):
         k = best[p]

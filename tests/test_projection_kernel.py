@@ -1,8 +1,8 @@
-"""The match by projection's compiled pass (frontend/matching_kernels.py) against the whole-array formulation
-it replaced, on frames built for ties: descriptors that differ from a few shared ones by a bit or two, so that
-distances tie within a point's candidates and between the points that want one keypoint. A different tie rule
-(a later pair, a higher map point) or a test moved to the wrong side of a bound changes the matches, and with
-them the poses."""
+"""The match by projection's compiled pass (frontend/matching_kernels.py: a grid of the keypoints) against the
+whole-array formulation it replaced (a k-d tree's pair list, stable sorts), on frames built for ties: descriptors
+that differ from a few shared ones by a bit or two, so that distances tie within a point's candidates and between
+the points that want one keypoint. A different tie rule (a later pair in the tree's listing, a higher map point) or
+a test moved to the wrong side of a bound changes the matches, and with them the poses."""
 from __future__ import annotations
 
 import numpy as np
@@ -114,3 +114,31 @@ def test_projection_matches_are_those_of_the_sorting_formulation(seed, radius, m
     assert result.keypoint_of_point.dtype == np.int64 and result.distance.dtype == np.int64
     matched = kop[kop >= 0]
     assert len(np.unique(matched)) == len(matched)           # one map point per keypoint
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_keypoints_beyond_the_image_border_are_found_from_points_near_it(seed):
+    """Undistorted keypoints may lie a few pixels outside the image (the grid keeps them in its border cells):
+    points projected near the border still find them, as the k-d tree does, also with a wide search."""
+    frame, points, eligible = _scene(seed)
+    rng = np.random.default_rng(100 + seed)
+    uv = frame.uv.copy()
+    out = rng.random(len(uv)) < 0.3
+    uv[out, 0] = np.where(rng.random(out.sum()) < 0.5, rng.uniform(-12, 0, out.sum()), rng.uniform(640, 652, out.sum()))
+    frame = FeatureFrame(0, 0.0, uv, uv, frame.octaves, frame.descriptors, frame.depths, frame.u_right,
+                         frame.dynamic_prob, SCALES)
+    xyz = points.xyz.copy()        # a third of the points projected inside the image within 3 px of such a keypoint
+    near = rng.random(len(xyz)) < 0.33
+    near[:5] = False               # (behind the camera)
+    anchor = rng.choice(np.flatnonzero(out), near.sum())
+    u = np.clip(uv[anchor, 0] + rng.uniform(-3, 3, near.sum()), 0, 639.9)
+    v = uv[anchor, 1] + rng.uniform(-2, 2, near.sum())
+    xyz[near, 0] = (u - 320) / 500 * xyz[near, 2]
+    xyz[near, 1] = (v - 240) / 500 * xyz[near, 2]
+    points = MapPoints(points.ids, xyz, points.descriptors, points.octaves)
+    for radius in (4.0, 30.0):
+        result = search_by_projection(frame, points, np.eye(4), CAMERA, radius, 100, 1.0, eligible)
+        kop, dist = _reference(frame, points, np.eye(4), radius, 100, 1.0, eligible)
+        assert (kop[near] >= 0).sum() > 10 if radius > 4 else (kop[near] >= 0).any()
+        np.testing.assert_array_equal(result.keypoint_of_point, kop)
+        np.testing.assert_array_equal(result.distance, dist)
