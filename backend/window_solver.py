@@ -200,18 +200,13 @@ def solve(problem: WindowProblem, calibration: StereoCalibration, iterations: in
         before = current
         prior_res = points - pb.prior_xyz
         linear_pose = pose_factors.linearize(poses)
-        e = obs.current[2]
-        old_linear = 0.5 * float(np.sum(e * e)) + 0.5 * pb.prior_w2 * float(np.sum(prior_res * prior_res)) \
-            + 0.5 * sum(float(b @ b) for _, b, _ in linear_pose)
+        old_linear = _linear_cost_now(obs, pb.prior_w2, prior_res, linear_pose)
         while True:
             step = _damped_step(obs, pb.prior_w2, prior_res, linear_pose, lam)
             success, stop = False, False
             if step is not None:
                 dp, dl = step
-                moved_prior = prior_res + dl
-                new_linear = kernels.linear_cost(obs.o_pose, obs.o_pt, n_adj, *obs.current, dp, dl) \
-                    + 0.5 * pb.prior_w2 * float(np.sum(moved_prior * moved_prior)) + _pose_linear_cost(linear_pose, dp)
-                linear_change = old_linear - new_linear
+                linear_change = old_linear - _linear_cost_of_step(obs, pb.prior_w2, prior_res, linear_pose, dp, dl)
                 if linear_change >= 0:
                     new_poses = poses.copy()
                     new_poses[:n_adj] = _retract(poses[:n_adj], dp.reshape(-1, 6))
@@ -240,6 +235,21 @@ def solve(problem: WindowProblem, calibration: StereoCalibration, iterations: in
     if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(points))):
         raise BackendError("local bundle adjustment failed: the window's solution is not finite")
     return poses, points, done
+
+
+def _linear_cost_now(obs: _Observations, prior_w2: float, prior_res: np.ndarray, linear_pose: list) -> float:
+    """The linearised model's cost at the current estimate (no step): observations, landmark priors, pose factors."""
+    e = obs.current[2]
+    return 0.5 * float(np.sum(e * e)) + 0.5 * prior_w2 * float(np.sum(prior_res * prior_res)) \
+        + 0.5 * sum(float(b @ b) for _, b, _ in linear_pose)
+
+
+def _linear_cost_of_step(obs: _Observations, prior_w2: float, prior_res: np.ndarray, linear_pose: list,
+                         dp: np.ndarray, dl: np.ndarray) -> float:
+    """The linearised model's cost after the step (poses' ``dp``, landmarks' ``dl``)."""
+    moved_prior = prior_res + dl
+    return kernels.linear_cost(obs.o_pose, obs.o_pt, obs.n_adj, *obs.current, dp, dl) \
+        + 0.5 * prior_w2 * float(np.sum(moved_prior * moved_prior)) + _pose_linear_cost(linear_pose, dp)
 
 
 def _damped_step(obs: _Observations, prior_w2: float, prior_res: np.ndarray, linear_pose: list,

@@ -134,70 +134,83 @@ def _pose_blocks(n_adj, o_pose, Jp, e, S, g):
 
 
 @numba.njit(cache=True, nogil=True)
+def _landmark_block(j, lm_start, lm_obs, Jp, Jl, e, prior_w2, prior_res, lam, H, gl, W):
+    """Landmark ``j``'s damped 3x3 block (into ``H``), its gradient (``gl[j]``) and every one of its observations'
+    Jp' Jl (``W``), its prior included."""
+    for a in range(3):
+        for b in range(3):
+            H[a, b] = 0.0
+        H[a, a] = prior_w2 + lam
+        gl[j, a] = -prior_w2 * prior_res[j, a]
+    for s in range(lm_start[j], lm_start[j + 1]):
+        i = lm_obs[s]
+        for a in range(3):
+            acc = 0.0
+            for r in range(3):
+                acc += Jl[i, r, a] * e[i, r]
+            gl[j, a] -= acc
+            for b in range(3):
+                h = 0.0
+                for r in range(3):
+                    h += Jl[i, r, a] * Jl[i, r, b]
+                H[a, b] += h
+        for a in range(6):                  # W = Jp' Jl
+            for b in range(3):
+                h = 0.0
+                for r in range(3):
+                    h += Jp[i, r, a] * Jl[i, r, b]
+                W[s, a, b] = h
+
+
+@numba.njit(cache=True, nogil=True)
+def _eliminate_landmark(j, n_adj, o_pose, lm_start, lm_obs, W, Hi, gl, S, g):
+    """Subtract landmark ``j``'s Schur terms, W_s Hinv W_t' for every pair of its observations by adjusted poses
+    and W_s Hinv gl, from ``S`` (its upper triangle, diagonal blocks whole) and ``g``."""
+    for s in range(lm_start[j], lm_start[j + 1]):
+        pi = o_pose[lm_obs[s]]
+        if pi >= n_adj:
+            continue
+        # V = W_s Hinv (6x3)
+        for a in range(6):
+            v0 = W[s, a, 0] * Hi[0, 0] + W[s, a, 1] * Hi[1, 0] + W[s, a, 2] * Hi[2, 0]
+            v1 = W[s, a, 0] * Hi[0, 1] + W[s, a, 1] * Hi[1, 1] + W[s, a, 2] * Hi[2, 1]
+            v2 = W[s, a, 0] * Hi[0, 2] + W[s, a, 1] * Hi[1, 2] + W[s, a, 2] * Hi[2, 2]
+            g[6 * pi + a] -= v0 * gl[j, 0] + v1 * gl[j, 1] + v2 * gl[j, 2]
+            for t in range(s, lm_start[j + 1]):      # the pair (t, s) is the transpose of (s, t)
+                pj = o_pose[lm_obs[t]]
+                if pj >= n_adj:
+                    continue
+                for b in range(6):
+                    update = v0 * W[t, b, 0] + v1 * W[t, b, 1] + v2 * W[t, b, 2]
+                    if pi < pj:
+                        S[6 * pi + a, 6 * pj + b] -= update
+                    elif pi > pj:
+                        S[6 * pj + b, 6 * pi + a] -= update
+                    else:                           # a diagonal block: both orders
+                        S[6 * pi + a, 6 * pj + b] -= update
+                        if t != s:
+                            S[6 * pj + b, 6 * pi + a] -= update
+
+
+@numba.njit(cache=True, nogil=True)
 def reduced_system(n_adj, o_pose, lm_start, lm_obs, Jp, Jl, e, prior_w2, prior_res, lam, S, g, Hinv, gl):
     """The pose system with every landmark eliminated (Schur complement), damped by ``lam`` on every variable
     (GTSAM's LM without diagonal damping): ``S`` (6n, 6n) and ``g`` (6n) are added to in place (they hold the
     pose-only factors already). The landmarks' blocks go to ``S``'s upper triangle only (its diagonal blocks
-    whole): the Cholesky factorisation reads nothing else, and the mirrored copy, a column-wise write, cost a quarter
-    of the kernel's time on a final adjustment (Bonn crowd-480, 5,348 landmarks: 35 -> 27 ms). Per landmark (observations ``lm_obs[lm_start[j]:lm_start[j+1]]``) keeps its
-    damped block's inverse ``Hinv`` (M,3,3) and its gradient ``gl`` (M,3) for the back-substitution; its
-    prior is ``prior_w2 * |x - x0|^2 / 2`` with ``prior_res`` = x - x0 (M,3)."""
-    n_pts = len(lm_start) - 1
+    whole): the Cholesky factorisation reads nothing else, and the mirrored copy, a column-wise write, cost a
+    quarter of the kernel's time on a final adjustment (Bonn crowd-480, 5,348 landmarks: 35 -> 26 ms). Per
+    landmark (observations ``lm_obs[lm_start[j]:lm_start[j+1]]``) keeps its damped block's inverse ``Hinv``
+    (M,3,3) and its gradient ``gl`` (M,3) for the back-substitution; its prior is ``prior_w2 * |x - x0|^2 / 2``
+    with ``prior_res`` = x - x0 (M,3). Returns every observation's Jp' Jl (K,6,3)."""
     _pose_blocks(n_adj, o_pose, Jp, e, S, g)
     for k in range(6 * n_adj):
         S[k, k] += lam
     H = np.zeros((3, 3))
     W = np.zeros((lm_start[-1] if len(lm_start) else 0, 6, 3))
-    for j in range(n_pts):
-        for a in range(3):
-            for b in range(3):
-                H[a, b] = 0.0
-            H[a, a] = prior_w2 + lam
-            gl[j, a] = -prior_w2 * prior_res[j, a]
-        for s in range(lm_start[j], lm_start[j + 1]):
-            i = lm_obs[s]
-            for a in range(3):
-                acc = 0.0
-                for r in range(3):
-                    acc += Jl[i, r, a] * e[i, r]
-                gl[j, a] -= acc
-                for b in range(3):
-                    h = 0.0
-                    for r in range(3):
-                        h += Jl[i, r, a] * Jl[i, r, b]
-                    H[a, b] += h
-            for a in range(6):                  # W = Jp' Jl
-                for b in range(3):
-                    h = 0.0
-                    for r in range(3):
-                        h += Jp[i, r, a] * Jl[i, r, b]
-                    W[s, a, b] = h
+    for j in range(len(lm_start) - 1):
+        _landmark_block(j, lm_start, lm_obs, Jp, Jl, e, prior_w2, prior_res, lam, H, gl, W)
         _inverse3(H, Hinv[j])
-        Hi = Hinv[j]
-        for s in range(lm_start[j], lm_start[j + 1]):
-            pi = o_pose[lm_obs[s]]
-            if pi >= n_adj:
-                continue
-            # V = W_s Hinv (6x3)
-            for a in range(6):
-                v0 = W[s, a, 0] * Hi[0, 0] + W[s, a, 1] * Hi[1, 0] + W[s, a, 2] * Hi[2, 0]
-                v1 = W[s, a, 0] * Hi[0, 1] + W[s, a, 1] * Hi[1, 1] + W[s, a, 2] * Hi[2, 1]
-                v2 = W[s, a, 0] * Hi[0, 2] + W[s, a, 1] * Hi[1, 2] + W[s, a, 2] * Hi[2, 2]
-                g[6 * pi + a] -= v0 * gl[j, 0] + v1 * gl[j, 1] + v2 * gl[j, 2]
-                for t in range(s, lm_start[j + 1]):      # the pair (t, s) is the transpose of (s, t)
-                    pj = o_pose[lm_obs[t]]
-                    if pj >= n_adj:
-                        continue
-                    for b in range(6):
-                        update = v0 * W[t, b, 0] + v1 * W[t, b, 1] + v2 * W[t, b, 2]
-                        if pi < pj:
-                            S[6 * pi + a, 6 * pj + b] -= update
-                        elif pi > pj:
-                            S[6 * pj + b, 6 * pi + a] -= update
-                        else:                           # a diagonal block: both orders
-                            S[6 * pi + a, 6 * pj + b] -= update
-                            if t != s:
-                                S[6 * pj + b, 6 * pi + a] -= update
+        _eliminate_landmark(j, n_adj, o_pose, lm_start, lm_obs, W, Hinv[j], gl, S, g)
     return W
 
 

@@ -66,9 +66,9 @@ def search_by_projection(frame: FeatureFrame, points: MapPoints, T_cw: np.ndarra
     tie_rank[cKDTree(kp_uv).indices] = np.arange(len(kp_idx))
     point_octaves = points.octaves if has_octave else np.zeros(0, np.int64)
     result.keypoint_of_point, result.distance = match_by_projection(
-        vis_idx, np.ascontiguousarray(uv[vis_idx]), kp_idx, kp_uv, tie_rank, float(radius), point_scale, point_octaves, frame.octaves, has_octave, int(max_level_gap),
-        descriptor_words(points.descriptors), descriptor_words(frame.descriptors), int(max_distance), float(ratio),
-        float(camera.width), float(camera.height))
+        vis_idx, np.ascontiguousarray(uv[vis_idx]), kp_idx, kp_uv, tie_rank, float(radius), point_scale,
+        point_octaves, frame.octaves, has_octave, int(max_level_gap), descriptor_words(points.descriptors),
+        descriptor_words(frame.descriptors), int(max_distance), float(ratio), float(camera.width), float(camera.height))
     return result
 
 

@@ -60,6 +60,43 @@ def _keypoint_grid(kp_uv, width, height, cell):
 
 
 @numba.njit(**_JIT)
+def _best_two(p, u, v, reach, grid, kp_uv, kp_idx, tie_rank, point_octaves, frame_octaves, check_levels, max_level_gap,
+              point_words, frame_words):
+    """Map point ``p``'s best and second candidate among the keypoints within ``reach`` px of (u, v), ranked by
+    (Hamming distance, ``tie_rank``): (best, its distance, second, its distance), -1 where there is none. The grid's
+    reading order decides nothing."""
+    cols, rows, starts, order = grid
+    cell = _CELL_PX
+    c0 = min(max(int(np.floor((u - reach) / cell)), 0), cols - 1)
+    c1 = min(max(int(np.floor((u + reach) / cell)), 0), cols - 1)
+    r0 = min(max(int(np.floor((v - reach) / cell)), 0), rows - 1)
+    r1 = min(max(int(np.floor((v + reach) / cell)), 0), rows - 1)
+    best, best_h, best_r = -1, 0, 0
+    second, second_h, second_r = -1, 0, 0
+    for cy in range(r0, r1 + 1):
+        for cx in range(c0, c1 + 1):
+            c = cy * cols + cx
+            for s in range(starts[c], starts[c + 1]):
+                t = order[s]
+                dx, dy = kp_uv[t, 0] - u, kp_uv[t, 1] - v
+                if not np.sqrt(dx * dx + dy * dy) <= reach:
+                    continue
+                k = kp_idx[t]
+                if check_levels and abs(frame_octaves[k] - point_octaves[p]) > max_level_gap:
+                    continue
+                h = 0
+                for j in range(point_words.shape[1]):
+                    h += _popcount64(point_words[p, j] ^ frame_words[k, j])
+                r = tie_rank[t]
+                if best < 0 or h < best_h or (h == best_h and r < best_r):
+                    second, second_h, second_r = best, best_h, best_r
+                    best, best_h, best_r = k, h, r
+                elif second < 0 or h < second_h or (h == second_h and r < second_r):
+                    second, second_h, second_r = k, h, r
+    return best, best_h, second, second_h
+
+
+@numba.njit(**_JIT)
 def match_by_projection(vis_idx, uv, kp_idx, kp_uv, tie_rank, radius, point_scale, point_octaves, frame_octaves,
                         check_levels, max_level_gap, point_words, frame_words, max_distance, ratio, width, height):
     """The map points ``vis_idx`` (projected to ``uv``, one row each) against the eligible keypoints ``kp_idx``
@@ -76,39 +113,12 @@ def match_by_projection(vis_idx, uv, kp_idx, kp_uv, tie_rank, radius, point_scal
     second = np.full(m, -1, np.int64)
     best_h = np.zeros(m, np.int64)
     second_h = np.zeros(m, np.int64)
-    best_r = np.zeros(m, np.int64)
-    second_r = np.zeros(m, np.int64)
-    cell = _CELL_PX
-    cols, rows, starts, order = _keypoint_grid(kp_uv, width, height, cell)
+    grid = _keypoint_grid(kp_uv, width, height, _CELL_PX)
     for i in range(vis_idx.shape[0]):
         p = vis_idx[i]
-        u, v = uv[i, 0], uv[i, 1]
-        reach = radius * point_scale[p]
-        c0 = min(max(int(np.floor((u - reach) / cell)), 0), cols - 1)
-        c1 = min(max(int(np.floor((u + reach) / cell)), 0), cols - 1)
-        r0 = min(max(int(np.floor((v - reach) / cell)), 0), rows - 1)
-        r1 = min(max(int(np.floor((v + reach) / cell)), 0), rows - 1)
-        for cy in range(r0, r1 + 1):
-            for cx in range(c0, c1 + 1):
-                c = cy * cols + cx
-                for s in range(starts[c], starts[c + 1]):
-                    t = order[s]
-                    dx, dy = kp_uv[t, 0] - u, kp_uv[t, 1] - v
-                    if not np.sqrt(dx * dx + dy * dy) <= reach:
-                        continue
-                    k = kp_idx[t]
-                    if check_levels and abs(frame_octaves[k] - point_octaves[p]) > max_level_gap:
-                        continue
-                    h = 0
-                    for j in range(point_words.shape[1]):
-                        h += _popcount64(point_words[p, j] ^ frame_words[k, j])
-                    # ranked by (descriptor distance, tie rank): the grid's reading order decides nothing
-                    r = tie_rank[t]
-                    if best[p] < 0 or h < best_h[p] or (h == best_h[p] and r < best_r[p]):
-                        second[p], second_h[p], second_r[p] = best[p], best_h[p], best_r[p]
-                        best[p], best_h[p], best_r[p] = k, h, r
-                    elif second[p] < 0 or h < second_h[p] or (h == second_h[p] and r < second_r[p]):
-                        second[p], second_h[p], second_r[p] = k, h, r
+        best[p], best_h[p], second[p], second_h[p] = _best_two(
+            p, uv[i, 0], uv[i, 1], radius * point_scale[p], grid, kp_uv, kp_idx, tie_rank, point_octaves,
+            frame_octaves, check_levels, max_level_gap, point_words, frame_words)
     winner = np.full(frame_octaves.shape[0], -1, np.int64)   # per keypoint: the map point that keeps it
     for p in range(m):
         k = best[p]
