@@ -70,11 +70,95 @@ def _t_weight(r, scale, nu):
     return (nu + 1.0) / (nu + q * q)
 
 
+# --- exact medians of non-negative values -------------------------------------------------------------------
+
+# The robust scales take two medians of ~1,350 residuals per sub-cloud and iteration; numba's np.median (a
+# quickselect on a copy) was about a third of the sub-pose ICP. The residuals are non-negative doubles, whose IEEE
+# bit patterns are ordered as their values: counting them into buckets of their bit patterns finds the bucket of
+# the k-th in two passes without a quickselect's mispredicted branches, and only that bucket is searched further.
+# The order statistics are exact, so the medians are np.median's to the bit.
+_BUCKETS = 1024
+_SORT_BELOW = 24          # a bucket this small is sorted outright
+
+
 @numba.njit(**_JIT)
-def _robust_scale(values, floor):
-    """1.4826 * median absolute deviation from the median (Eqs. 8-9), at least ``floor``."""
-    med = np.median(values)
-    return max(1.4826 * np.median(np.abs(values - med)), floor)
+def _insertion_sort(a, m):
+    for i in range(1, m):
+        x = a[i]
+        j = i - 1
+        while j >= 0 and a[j] > x:
+            a[j + 1] = a[j]
+            j -= 1
+        a[j + 1] = x
+
+
+@numba.njit(**_JIT)
+def _kth_smallest(src, k, want_next, work, counts):
+    """The k-th smallest (0-based) of the non-negative finite doubles ``src`` and, with ``want_next``, the
+    (k+1)-th (NaN otherwise). ``work``: scratch as long as ``src``; ``counts``: (_BUCKETS,) int64 scratch."""
+    data = src
+    m = len(src)
+    nxt = np.nan
+    pending = want_next
+    while True:
+        if m <= _SORT_BELOW:
+            for i in range(m):
+                work[i] = data[i]
+            _insertion_sort(work, m)
+            if pending:
+                nxt = work[k + 1]
+            return work[k], nxt
+        bits = data[:m].view(np.int64)
+        lo, hi = bits[0], bits[0]
+        for i in range(1, m):
+            lo, hi = min(lo, bits[i]), max(hi, bits[i])
+        if lo == hi:                                   # all equal
+            return data[0], (data[0] if pending else nxt)
+        shift = 0
+        while ((hi - lo) >> shift) >= _BUCKETS:
+            shift += 1
+        for g in range(((hi - lo) >> shift) + 1):
+            counts[g] = 0
+        for i in range(m):
+            counts[(bits[i] - lo) >> shift] += 1
+        below, g = 0, 0
+        while below + counts[g] <= k:
+            below += counts[g]
+            g += 1
+        size, k = counts[g], k - below
+        if pending and k + 1 >= size:                 # the next one is the smallest in the buckets above
+            nxt = np.inf
+            for i in range(m):
+                if ((bits[i] - lo) >> shift) > g and data[i] < nxt:
+                    nxt = data[i]
+            pending = False
+        w = 0
+        for i in range(m):                            # in place once data is work: w never passes i
+            if ((bits[i] - lo) >> shift) == g:
+                work[w] = data[i]
+                w += 1
+        data, m = work, size
+
+
+@numba.njit(**_JIT)
+def median_nonneg(values, work, counts):
+    """np.median of non-negative finite ``values`` (its mean of the two middle ones for an even count)."""
+    n = len(values)
+    half = n >> 1
+    if n & 1 == 0:
+        a, b = _kth_smallest(values, half - 1, True, work, counts)
+        return (a + b) / 2
+    return _kth_smallest(values, half, False, work, counts)[0]
+
+
+@numba.njit(**_JIT)
+def robust_scale(values, floor, work, counts):
+    """1.4826 * median absolute deviation from the median (Eqs. 8-9), at least ``floor``. Overwrites ``values``
+    with the deviations."""
+    med = median_nonneg(values, work, counts)
+    for i in range(len(values)):
+        values[i] = abs(values[i] - med)
+    return max(1.4826 * median_nonneg(values, work, counts), floor)
 
 
 @numba.njit(**_JIT)
@@ -118,7 +202,8 @@ def _gather_window(pose, p0, i0, a, n, table, fx, fy, cx, cy, width, height, see
 
 
 @numba.njit(**_JIT)
-def _intensity_matches(n, dist, r_int, cand, table, nu, floor_geom, floor_intensity, buf_g, buf_i, q, w):
+def _intensity_matches(n, dist, r_int, cand, table, nu, floor_geom, floor_intensity, buf_g, buf_i, work, counts,
+                       q, w):
     """Eqs. 4-9: each point's candidate with the largest product of Student-t weights of its distance and
     intensity residual, the scales over all candidates of the sub-cloud; into ``q`` and ``w`` (0 without a
     candidate). False when no point has a candidate."""
@@ -131,8 +216,8 @@ def _intensity_matches(n, dist, r_int, cand, table, nu, floor_geom, floor_intens
                 count += 1
     if count == 0:
         return False
-    sg = _robust_scale(buf_g[:count], floor_geom)
-    si = _robust_scale(buf_i[:count], floor_intensity)
+    sg = robust_scale(buf_g[:count], floor_geom, work, counts)
+    si = robust_scale(buf_i[:count], floor_intensity, work, counts)
     for t in range(n):
         # the largest product of the two weights (nu+1)^2 / (den_g den_i) is the smallest product of their
         # denominators: one division per point instead of two per candidate
@@ -153,7 +238,7 @@ def _intensity_matches(n, dist, r_int, cand, table, nu, floor_geom, floor_intens
 
 
 @numba.njit(**_JIT)
-def _nearest_matches(n, dist, cand, table, nu, floor_geom, buf_g, q, w):
+def _nearest_matches(n, dist, cand, table, nu, floor_geom, buf_g, work, counts, q, w):
     """Plain robust ICP: each point's nearest candidate under the geometric Student-t weight (0 without a
     candidate); into ``q`` and ``w``. False when no point has a candidate."""
     m = 0
@@ -170,7 +255,7 @@ def _nearest_matches(n, dist, cand, table, nu, floor_geom, buf_g, q, w):
             m += 1
     if m == 0:
         return False
-    sg = _robust_scale(buf_g[:m], floor_geom)
+    sg = robust_scale(buf_g[:m], floor_geom, work, counts)
     for t in range(n):
         w[t] = _t_weight(w[t], sg, nu) if np.isfinite(w[t]) else 0.0
     return True
@@ -217,6 +302,8 @@ def sub_poses_projective(p0, i0, starts, valid, init, table, fx, fy, cx, cy, wid
     cand = np.empty((n_max, c), np.int64)
     buf_g = np.empty(n_max * c)
     buf_i = np.empty(n_max * c)
+    work = np.empty(n_max * c)
+    counts = np.empty(_BUCKETS, np.int64)
     p = np.empty((n_max, 3))
     q = np.empty((n_max, 3))
     w = np.empty(n_max)
@@ -234,9 +321,9 @@ def sub_poses_projective(p0, i0, starts, valid, init, table, fx, fy, cx, cy, wid
                                sentinel, p, cand, dist, r_int)
                 if intensity:
                     found = _intensity_matches(n, dist, r_int, cand, table, nu, floor_geom, floor_intensity, buf_g,
-                                               buf_i, q, w)
+                                               buf_i, work, counts, q, w)
                 else:
-                    found = _nearest_matches(n, dist, cand, table, nu, floor_geom, buf_g, q, w)
+                    found = _nearest_matches(n, dist, cand, table, nu, floor_geom, buf_g, work, counts, q, w)
                 if not found:
                     break
                 sums, ws = _weighted_sums(n, p, q, w)
