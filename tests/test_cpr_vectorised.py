@@ -57,7 +57,7 @@ def test_compiled_median_and_scale_are_numpy_bit_for_bit(kind):
             v = rng.random(n) * 1e-3
             v[rng.integers(0, n, 3)] = [1e300, 0.0, 5e-324]
         assert kernels.median_nonneg(v.copy(), work, counts) == np.median(v)
-        assert kernels.robust_scale(v.copy(), 0.0, work, counts) == robust_scale(v, 0.0)
+        assert kernels.robust_scale_in_place(v.copy(), 0.0, work, counts) == robust_scale(v, 0.0)
 
 
 def test_voxel_filter_matches_sorted_unique():
