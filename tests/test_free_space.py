@@ -142,9 +142,10 @@ def test_config_rejects_lags_that_are_not_positive(lags):
         apply_overrides(SlamConfig(), {"dynamic.mask_free_space_lags_s": lags})
 
 
-def test_later_frames_grow_a_keyframes_evidence_and_hand_it_back_once_per_lag():
+def test_later_frames_grow_a_keyframes_evidence_and_hand_it_back_after_the_last_lag():
     """The masks can wait: a keyframe with no earlier frame (the run's start) is tested against the frames
-    0.5 and 1 s after it as they come; the box that stood in front of the wall is gone from them."""
+    0.5 and 1 s after it as they come; the box that stood in front of the wall is gone from them. The evidence
+    comes back once, after the last lag (each hand-over is a mask composed and written again)."""
     fs = check()
     box = (200, 100, 360, 400)
     assert fs.keyframe("kf", 0.0, wall(box), pose_cw(0.0)) is None
@@ -153,11 +154,33 @@ def test_later_frames_grow_a_keyframes_evidence_and_hand_it_back_once_per_lag():
     for k in range(1, 40):                                        # 30 Hz, 1.3 s; the box left at once
         handed.append((k, fs.remember(k / 30, wall(), pose_cw(0.0))))
     got = [(k, items) for k, items in handed if items]
-    assert [k for k, _ in got] == [15, 30]                        # the first frames 0.5 s and 1 s later
+    assert [k for k, _ in got] == [30]                            # the first frame 1 s later: the last lag
     (key, (moving, known, _)), = got[0][1]
     assert key == "kf" and moving[110:390, 210:350].all() and known.mean() > 0.95
     assert not moving[:, 420:].any()
-    assert fs._pending == []                                      # done after its last lag
+    assert fs._pending == [] and fs.flush() == []                 # done after its last lag
+
+
+def test_the_runs_end_hands_back_the_evidence_of_a_keyframe_whose_last_lag_never_came():
+    """A keyframe 0.7 s before the run's end has had its 0.5 s frame, not its 1 s one: ``flush`` hands back
+    what that frame added, once: the evidence a 1 s frame that tells nothing more would have handed back. A
+    keyframe that no later frame has told anything yet is not handed back."""
+    box = (200, 100, 360, 400)
+    ended, whole = check(), check()
+    for fs in (ended, whole):
+        assert fs.keyframe("kf", 0.0, wall(box), pose_cw(0.0)) is None
+        fs.remember(0.0, wall(box), pose_cw(0.0))
+        assert not any(fs.remember(k / 30, wall(), pose_cw(0.0)) for k in range(1, 22))
+    assert ended.keyframe("late", 22 / 30, wall(box), pose_cw(0.0)) is not None   # its earlier frames told
+    flushed = ended.flush()
+    assert [key for key, _ in flushed] == ["kf"] and ended.flush() == []
+    handed = [whole.remember(k / 30, blind(), pose_cw(0.0)) for k in range(22, 40)]   # the 1 s frame sees nothing
+    (key, evidence), = [item for items in handed for item in items]
+    assert key == "kf"
+    for got, expected in zip(flushed[0][1], evidence):
+        np.testing.assert_array_equal(got, expected)
+    moving, known, _ = evidence
+    assert moving[110:390, 210:350].all() and known.mean() > 0.95
 
 
 def test_the_moving_evidence_grows_over_the_moving_surface_not_onto_the_wall_beside_it():

@@ -358,17 +358,24 @@ class DynamicRejector:
         self.revised_masks = self._keyframe_masks.advance(ctx.frame.timestamp, tracks, still, keyframe,
                                                           self._region_motion.ended_still)
         self._last_people = (tracks, still)
-        # Earlier keyframes that a later frame now shows (un)moved: composed again (keyframe_masks).
-        for (index, timestamp, parts), evidence in grown:
-            parts.free_space = evidence
-            mask, unmoved = compose_mask(parts)
-            if mask is not None:
-                self.revised_masks.append(RevisedMask(index, timestamp, mask, unmoved))
+        # Earlier keyframes that later frames showed (un)moved: composed again (keyframe_masks).
+        self.revised_masks.extend(self._compose_with(grown))
         self._last_time = ctx.frame.timestamp
         for method in self.methods:
             with self.timer.measure(f"dynamic.{method.name}"):
                 method.end_frame(ctx, outputs[method.name], T_cw, is_keyframe)
         self._last = None
+
+    @staticmethod
+    def _compose_with(evidence: list) -> list[RevisedMask]:
+        """The keyframe masks composed again with their free-space evidence (``FreeSpaceCheck``'s keys)."""
+        revised = []
+        for (index, timestamp, parts), grown in evidence:
+            parts.free_space = grown
+            mask, unmoved = compose_mask(parts)
+            if mask is not None:
+                revised.append(RevisedMask(index, timestamp, mask, unmoved))
+        return revised
 
     def finish_masks(self) -> list[RevisedMask]:
         """At the end of a run: the keyframes whose masks change because a person still followed, for less
@@ -376,9 +383,12 @@ class DynamicRejector:
         last frame stood through the keyframes of its last window too (``KeyframeMaskLedger``: settled)."""
         if self._last_time is None:
             return []
+        # The keyframes whose later frames are not all in yet, with the evidence those that came added; then
+        # the ledger's last word (composing with that evidence), as the frames before handed them in that order.
+        revised = self._compose_with(self._free_space.flush())
         tracks, still = self._last_people
-        return self._keyframe_masks.advance(self._last_time, tracks, still, None, self._region_motion.finish(),
-                                            final=True)
+        return revised + self._keyframe_masks.advance(self._last_time, tracks, still, None,
+                                                      self._region_motion.finish(), final=True)
 
     def close(self) -> None:
         """Stop the threads and persist what is worth keeping (the detection cache)."""
