@@ -108,3 +108,32 @@ def test_an_unreadable_frame_ahead_is_reported_for_itself(people):
             system.process(bad.rgb, bad.depth, bad.timestamp, 1)
     finally:
         system.close()
+
+
+def test_a_frame_begun_ahead_is_checked_once_and_other_arrays_are_still_checked(people, monkeypatch):
+    """The frame ahead was checked when it was begun: its own call does not check the same arrays again. Other
+    arrays under its timestamp and index (a caller that announced one frame and passed another) are checked
+    and refused, and the begun work ends before the error leaves."""
+    import slam.runtime.lookahead as lookahead
+    import slam.runtime.system as system_module
+    from slam.runtime.inputs import InputError, check_inputs
+
+    calls = []
+
+    def counting(rgb, *args):
+        calls.append(rgb)
+        return check_inputs(rgb, *args)
+
+    monkeypatch.setattr(lookahead, "check_inputs", counting)
+    monkeypatch.setattr(system_module, "check_inputs", counting)
+    system = System(synthetic_config(people, preset=None), detector=synthetic_oracle(people))
+    try:
+        f0, f1, f2 = people.frame(0), people.frame(1), people.frame(2)
+        system.process(f0.rgb, f0.depth, f0.timestamp, 0, UpcomingFrame(f1.rgb, f1.depth, f1.timestamp, 1))
+        system.process(f1.rgb, f1.depth, f1.timestamp, 1, UpcomingFrame(f2.rgb, f2.depth, f2.timestamp, 2))
+        assert [c is f for c, f in zip(calls, (f0.rgb, f1.rgb, f2.rgb))] == [True] * 3 and len(calls) == 3
+        with pytest.raises(InputError, match="depth"):
+            system.process(f2.rgb, (f2.depth * 1000).astype(np.uint16), f2.timestamp, 2)
+    finally:
+        system.close()
+    assert not [t for t in threading.enumerate() if t.name.startswith("dynslam-features") and t.is_alive()]

@@ -54,6 +54,11 @@ class BegunFrame:
     timestamp: float
     index: int
     features: Future           # -> FeatureFrame
+    source_depth: Optional[np.ndarray] = None   # the depth as given (checked by ``check_inputs``)
+
+    def checked(self, rgb: np.ndarray, depth: np.ndarray) -> bool:
+        """Whether ``rgb`` and ``depth`` are the very arrays this frame was begun with (and checked)."""
+        return rgb is self.rgb and depth is self.source_depth
 
 
 class FrameLookahead:
@@ -80,7 +85,7 @@ class FrameLookahead:
         if self._thread is None:
             self._thread = ThreadPoolExecutor(1, thread_name_prefix="dynslam-features")
         features = self._thread.submit(self._extract, gray, depth, upcoming.index, upcoming.timestamp)
-        self._begun = BegunFrame(rgb, depth, gray, upcoming.timestamp, upcoming.index, features)
+        self._begun = BegunFrame(rgb, depth, gray, upcoming.timestamp, upcoming.index, features, upcoming.depth)
 
     def take(self, timestamp: float, index: int) -> Optional[BegunFrame]:
         """The begun frame if it is this one (the same timestamp and index: the caller announced it with

@@ -35,7 +35,7 @@ from slam.core.geometry import invert
 from slam.core.kernel_compile import watch_kernel_compilation
 from slam.core.timing import ModuleTimer
 from slam.runtime.graph_process import GraphProcess, GraphSpec
-from slam.runtime.inputs import check_inputs, clean_depth, to_gray
+from slam.runtime.inputs import InputError, check_inputs, clean_depth, to_gray
 from slam.runtime.lookahead import FrameLookahead, UpcomingFrame
 from slam.runtime.tracking_loop import FrameOutput, TrackingLoop
 
@@ -115,9 +115,15 @@ class System:
         """Track one frame. ``upcoming``: the frame the next call will get, if known (a dataset); its
         features and detections then run on threads while this frame is tracked
         (slam/runtime/lookahead.py). The result is the same bits as without it."""
-        check_inputs(rgb, depth, timestamp, self.camera.width, self.camera.height)
         index = len(self.tracking.frames) if index is None else index
         begun = self._lookahead.take(timestamp, index)
+        if begun is None or not begun.checked(rgb, depth):   # a frame begun ahead was checked then
+            try:
+                check_inputs(rgb, depth, timestamp, self.camera.width, self.camera.height)
+            except InputError:
+                if begun is not None:
+                    begun.features.exception()   # its work ends before the error leaves
+                raise
         if begun is not None:
             rgb, depth = begun.rgb, begun.depth
         else:
