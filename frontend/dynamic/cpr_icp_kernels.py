@@ -75,9 +75,10 @@ def _t_weight(r, scale, nu):
 # The robust scales take two medians of ~1,350 residuals per sub-cloud and iteration; with numba's np.median (a
 # quickselect on a copy) they were over half of the sub-pose ICP (captured Bonn calls: 4.0 ms, 1.8 with the scales
 # stubbed out; 2.8 with these). The residuals are non-negative doubles (distances, absolute differences: never
-# -0.0, whose pattern is the sign bit), whose IEEE bit patterns are ordered as their values: counting them into buckets of their bit patterns finds the bucket of
-# the k-th in two passes without a quickselect's mispredicted branches, and only that bucket is searched further.
-# The order statistics are exact, so the medians are np.median's to the bit.
+# -0.0, whose pattern is the sign bit), whose IEEE bit patterns are ordered as their values: counting them into
+# buckets of their bit patterns finds the bucket of the k-th in two passes without a quickselect's mispredicted
+# branches, and only that bucket is searched further. The order statistics are exact, so the medians are
+# np.median's to the bit.
 _BUCKETS = 1024
 _SORT_BELOW = 24          # a bucket this small is sorted outright
 

@@ -18,8 +18,9 @@ Where a pixel is known and consistent with every frame that knows it, the masks 
 surfaces (``keyframe_masks.compose_mask``) and keep it among the pixels never to be mapped (``_still``),
 so a dense map leaves out what it left out before. A keyframe's mask is composed again once the last of its
 later frames has been compared, if any of them added evidence (a ``RevisedMask``, as for a person found
-standing still; the run's outputs rewrite the files), or at the run's end (``flush``). Tracking and the sparse map are unchanged: this only sharpens the output masks, which can afford
-the tracked poses the features could not wait for.
+standing still; the run's outputs rewrite the files), or at the run's end (``flush``). Tracking and the
+sparse map are unchanged: this only sharpens the output masks, which can afford the tracked poses the
+features could not wait for.
 
 Why the numbers:
 
@@ -202,8 +203,8 @@ class FreeSpaceCheck:
         """A tracked frame: kept while it may serve as an earlier frame, and compared with the pending
         keyframes it is the first frame ``lag`` after. Returns (key, ``Evidence``) of the keyframes it was the
         last later frame of, whose evidence a later frame added to. Handed back once, not after every lag: each
-        hand-over is a mask composed and a PNG written again (Bonn crowd-480: 456 of them for 96 keyframes,
-        ~6 ms of CPU per frame), and every one but the last was overwritten; the last is the same."""
+        hand-over is a mask composed and its PNGs written again (Bonn crowd-480: 456 of them for 96 keyframes,
+        ~5 ms of CPU per frame), and every one but the last was overwritten; the last is the same."""
         if not self.enabled:
             return []
         grid = np.asarray(depth, np.float32)[::_STEP, ::_STEP]

@@ -20,7 +20,7 @@ from frontend.dynamic import DynamicStats, RevisedMask
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.box_depth_segmentation import cached_person_layer
 from frontend.dynamic.box_memory import BoxMemory
-from frontend.dynamic.free_space import FreeSpaceCheck
+from frontend.dynamic.free_space import Evidence, FreeSpaceCheck
 from frontend.dynamic.fusion import fuse
 from frontend.dynamic.keyframe_masks import (KeyframeMaskLedger, MaskParts, compose_mask, features_off_body,
                                              still_region, vacated_region)
@@ -367,10 +367,11 @@ class DynamicRejector:
         self._last = None
 
     @staticmethod
-    def _compose_with(evidence: list) -> list[RevisedMask]:
-        """The keyframe masks composed again with their free-space evidence (``FreeSpaceCheck``'s keys)."""
+    def _compose_with(handed_back: list[tuple[tuple[int, float, MaskParts], Evidence]]) -> list[RevisedMask]:
+        """The keyframe masks composed again with the free-space evidence ``FreeSpaceCheck`` handed back (its
+        keys: frame index, timestamp, the keyframe's mask parts)."""
         revised = []
-        for (index, timestamp, parts), grown in evidence:
+        for (index, timestamp, parts), grown in handed_back:
             parts.free_space = grown
             mask, unmoved = compose_mask(parts)
             if mask is not None:

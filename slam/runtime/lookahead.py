@@ -54,7 +54,7 @@ class BegunFrame:
     timestamp: float
     index: int
     features: Future           # -> FeatureFrame
-    source_depth: Optional[np.ndarray] = None   # the depth as given (checked by ``check_inputs``)
+    source_depth: np.ndarray   # the depth as given (what ``check_inputs`` checked)
 
     def checked(self, rgb: np.ndarray, depth: np.ndarray) -> bool:
         """Whether ``rgb`` and ``depth`` are the very arrays this frame was begun with (and checked)."""
