@@ -261,6 +261,18 @@ def compose_mask(parts: MaskParts) -> tuple[Optional[np.ndarray], Optional[np.nd
     return mask, still_people
 
 
+def recompose_with_evidence(handed_back: list[tuple[tuple[int, float, MaskParts], Evidence]]) -> list[RevisedMask]:
+    """Keyframe masks composed again with the free-space evidence ``FreeSpaceCheck`` handed back (its keys: frame
+    index, timestamp, the keyframe's mask parts, which keep the evidence for later compositions)."""
+    revised = []
+    for (index, timestamp, parts), evidence in handed_back:
+        parts.free_space = evidence
+        mask, unmoved = compose_mask(parts)
+        if mask is not None:
+            revised.append(RevisedMask(index, timestamp, mask, unmoved))
+    return revised
+
+
 def _motion_flagged(parts: MaskParts, box: Box) -> bool:
     """Whether the motion-measuring methods flag anything in ``box`` (what settling it would take away)."""
     x0, y0, x1, y1 = box

@@ -20,10 +20,10 @@ from frontend.dynamic import DynamicStats, RevisedMask
 from frontend.dynamic.base import Detector, DynamicContext, DynamicMethod, MethodOutput, keypoints_in_mask
 from frontend.dynamic.box_depth_segmentation import cached_person_layer
 from frontend.dynamic.box_memory import BoxMemory
-from frontend.dynamic.free_space import Evidence, FreeSpaceCheck
+from frontend.dynamic.free_space import FreeSpaceCheck
 from frontend.dynamic.fusion import fuse
 from frontend.dynamic.keyframe_masks import (KeyframeMaskLedger, MaskParts, compose_mask, features_off_body,
-                                             still_region, vacated_region)
+                                             recompose_with_evidence, still_region, vacated_region)
 from frontend.dynamic.near_occluder import NearOccluder
 from frontend.dynamic.overlay import overlay
 from frontend.dynamic.region_motion import RegionCarry, RegionMotion, box_centre, confirmed_regions
@@ -359,24 +359,12 @@ class DynamicRejector:
                                                           self._region_motion.ended_still)
         self._last_people = (tracks, still)
         # Earlier keyframes that later frames showed (un)moved: composed again (keyframe_masks).
-        self.revised_masks.extend(self._compose_with(grown))
+        self.revised_masks.extend(recompose_with_evidence(grown))
         self._last_time = ctx.frame.timestamp
         for method in self.methods:
             with self.timer.measure(f"dynamic.{method.name}"):
                 method.end_frame(ctx, outputs[method.name], T_cw, is_keyframe)
         self._last = None
-
-    @staticmethod
-    def _compose_with(handed_back: list[tuple[tuple[int, float, MaskParts], Evidence]]) -> list[RevisedMask]:
-        """The keyframe masks composed again with the free-space evidence ``FreeSpaceCheck`` handed back (its
-        keys: frame index, timestamp, the keyframe's mask parts)."""
-        revised = []
-        for (index, timestamp, parts), grown in handed_back:
-            parts.free_space = grown
-            mask, unmoved = compose_mask(parts)
-            if mask is not None:
-                revised.append(RevisedMask(index, timestamp, mask, unmoved))
-        return revised
 
     def finish_masks(self) -> list[RevisedMask]:
         """At the end of a run: the keyframes whose masks change because a person still followed, for less
@@ -386,7 +374,7 @@ class DynamicRejector:
             return []
         # The keyframes whose later frames are not all in yet, with the evidence those that came added; then
         # the ledger's last word (composing with that evidence), as the frames before handed them in that order.
-        revised = self._compose_with(self._free_space.flush())
+        revised = recompose_with_evidence(self._free_space.flush())
         tracks, still = self._last_people
         return revised + self._keyframe_masks.advance(self._last_time, tracks, still, None,
                                                       self._region_motion.finish(), final=True)
