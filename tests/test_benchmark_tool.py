@@ -51,6 +51,7 @@ def test_module_trend_line_names_the_modules_that_changed_most():
     assert line.endswith("dynamic.box_depth 4.5 -> 44.9, backend 2.8 -> 36.7, dynamic.prepare_wait 25.0 -> 6.0, "
                          "tracking 20.0 -> 21.0")
     assert benchmark.module_trend_line({"loop": {}}).endswith("run too short")
+    assert benchmark.module_trend_line(trends, "CPU").startswith("step by module, mean CPU ms per frame")
 
 
 def _dynslam_row(sequence: str, whole_run_ms: float, ate_m: float, trend_ratio: float = 1.0) -> dict:

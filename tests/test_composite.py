@@ -73,6 +73,16 @@ def test_poses_are_the_motion_capture_interpolated_to_each_frame(xyz, three_clos
             assert np.arccos(np.clip((np.trace(s[:3, :3].T @ pose[:3, :3]) - 1) / 2, -1, 1)) <= gap + 1e-9
 
 
+def test_real_holes_are_where_the_real_frame_has_no_depth_and_people_are_drawn_there(xyz, three_close):
+    base = TumDataset(xyz)
+    drawn = 0
+    for i in range(len(three_close)):
+        holes = three_close.real_holes(i)
+        np.testing.assert_array_equal(holes, ~(base[i].depth > 0))
+        drawn += int(np.count_nonzero(holes & three_close.dynamic_mask(i)))
+    assert drawn > 0      # fr1's holes around the desk: the people are drawn into them
+
+
 def test_the_clean_scene_is_the_real_sequence(xyz):
     clean, base = CompositeScene("none", xyz, FR1, n_frames=FRAMES), TumDataset(xyz)
     assert not clean.movers and clean.coverage.max() == 0
@@ -140,7 +150,8 @@ def rpy_composite_runs():
             scene = CompositeScene(name, folder, (camera.fx, camera.fy, camera.cx, camera.cy),
                                    n_frames=COMPOSITE_FRAMES)
             runs[name] = evaluate_synthetic(scene, resolve_run_config(folder, ["dynamic_all"], {}),
-                                            detector=scene_detector(scene, DEMO_ORACLE_MARGIN_PX))
+                                            detector=scene_detector(scene, DEMO_ORACLE_MARGIN_PX),
+                                            split=("real depth missing", scene.real_holes))
         return runs[name]
     return run
 
@@ -151,6 +162,12 @@ def test_slam_with_three_people_composited_into_a_real_sequence_stays_near_it(rp
     assert not clean.lost_frames
     assert result.ate_rmse <= MAX_ATE_RATIO * clean.ate_rmse, \
         f"ATE {result.ate_rmse:.4f} m vs {clean.ate_rmse:.4f} m on the same frames without people"
+    # The keyframe masks scored apart where the real frames had no depth and elsewhere: the two parts make the whole.
+    whole, holes = result.keyframe_masks["fused"], result.keyframe_masks["fused, real depth missing"]
+    rest = result.keyframe_masks["fused, not real depth missing"]
+    assert holes.dynamic > 0 and rest.dynamic > 0
+    for count in ("true_positive", "flagged", "dynamic"):
+        assert getattr(holes, count) + getattr(rest, count) == getattr(whole, count)
 
 
 @pytest.mark.slow

@@ -109,6 +109,13 @@ class CompositeScene(HardScene):
         time = float(self.timestamps[index])
         return self._people(self.pose(time), time, self._real(index).depth)
 
+    def real_holes(self, index: int) -> np.ndarray:
+        """HxW bool: where the real frame ``index`` measured no depth. People are drawn there whatever the
+        real scene holds (beyond the sensor's range that is what a camera sees; on a black monitor screen or
+        in the shadow beside a near edge a real person would be hidden): on fr1/rpy most of walk_stand's and
+        stand_walk's moving pixels (docs/dynamic.md, "Most of the composites' moving pixels")."""
+        return ~(self._real(index).depth > 0)
+
     def _real(self, index: int) -> RGBDFrame:
         """The real frame ``index``, the last one kept: ``frame`` and the cast it triggers read it once."""
         real = self._last_real   # read once: a reader thread may render another frame meanwhile

@@ -125,11 +125,15 @@ def median_ate_ratio(runs: list[SceneEvaluation], clean_runs: list[SceneEvaluati
 
 
 def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary_px: int = 3,
-                       detector=None, observer: Optional[Callable] = None) -> SceneEvaluation:
+                       detector=None, observer: Optional[Callable] = None,
+                       split: Optional[tuple[str, Callable[[int], np.ndarray]]] = None) -> SceneEvaluation:
     """Run ``System`` on ``sequence`` (a ``SyntheticSequence`` or ``HardScene``) with ``detector``
     (default: its ground-truth boxes) and measure classification, keyframe masks and trajectory.
     ``observer(frame, output, system)``, if given, sees every frame after it is processed (tests that
-    need more of the same run than these measures; the system is closed at the end, its map kept)."""
+    need more of the same run than these measures; the system is closed at the end, its map kept).
+    ``split`` (label, region of a frame index as HxW bool), if given: the fused keyframe masks are also counted
+    inside and outside that region (``keyframe_masks`` "fused, <label>" and "fused, not <label>"; e.g.
+    ``CompositeScene.real_holes``, where the real frame measured no depth)."""
     from slam.run.evaluation import ate
 
     detector = synthetic_oracle(sequence) if detector is None else detector
@@ -161,8 +165,14 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
             observer(frame, out, system)
     for revised in system.finish_keyframe_masks():
         keyframe_masks[revised.frame_index] = (mask_to_png(revised.mask), keyframe_masks[revised.frame_index][1])
-    for png, truth_mask in keyframe_masks.values():   # what masks/ holds at the end of the run
-        masks.setdefault("fused", PixelCounts()).add(png.astype(np.float32) / 255.0, truth_mask)
+    for index, (png, truth_mask) in keyframe_masks.items():   # what masks/ holds at the end of the run
+        fused = png.astype(np.float32) / 255.0
+        masks.setdefault("fused", PixelCounts()).add(fused, truth_mask)
+        if split is not None:
+            label, region_of = split
+            region = region_of(index)
+            masks.setdefault(f"fused, {label}", PixelCounts()).add(np.where(region, fused, 0), truth_mask & region)
+            masks.setdefault(f"fused, not {label}", PixelCounts()).add(np.where(region, 0, fused), truth_mask & ~region)
     keep = np.concatenate(keeps)
     truth = np.concatenate(truths)[keep]
     scores.features, scores.dynamic_features = len(truth), int(truth.sum())
