@@ -87,10 +87,8 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
         "cpu_s": cpu.seconds,           # by thread / process (tools/cpu_usage.py)
         "latency_ms": {"median": float(np.median(total_ms)), "p95": float(np.percentile(total_ms, 95))},
         "cost_trend": cost_trend(total_ms),
-        # each module's wall ms per frame over the first and the last quarter: what made the step climb
+        # each module's wall and CPU ms per frame over the first and the last quarter: what made the step climb
         "module_trend": {m: cost_trend(timer.per_frame(m)) for m in timer.modules() if m != "total"},
-        # and their CPU (the thread that ran each): on a run bound by its two cores a module's wall time grows
-        # with what the other threads want while it runs, its CPU only with its own work
         "module_cpu_trend": {m: cost_trend(timer.cpu_per_frame(m)) for m in timer.modules() if m != "total"},
         "backend_ms_at_keyframes": backend_cost_at_marks(keyframe_ms),
         # the mapping back end's own CPU per keyframe update (in the worker process by default)
@@ -240,9 +238,8 @@ TREND_LINE_MODULES = 6   # the modules whose mean changed most between the quart
 def module_trend_line(trends: dict[str, dict], clock: str = "wall") -> str:
     """The modules whose mean ``clock`` ms per frame ("wall", or "CPU" of the thread that ran each) changed
     most from the first quarter of the run to the last (``cost_trend``), largest change first: where a
-    climbing step comes from (people coming into view, a back end tracking waits for). The two differ on a
-    run bound by its cores: Bonn crowd-480's box_depth 2.3 -> 21.1 ms of wall per frame but 0.7 -> 7.9 of
-    CPU (2026-12-03), the rest of the wall waiting for a core."""
+    climbing step comes from. On a run bound by its cores the wall also holds the wait for a core (Bonn
+    crowd-480's box_depth, 2026-12-03: wall 2.3 -> 21.1 ms per frame, CPU 0.7 -> 7.9)."""
     moved = sorted(((name, t) for name, t in trends.items() if t),
                    key=lambda kv: -abs(kv[1]["last_ms"] - kv[1]["first_ms"]))
     if not moved:
