@@ -154,8 +154,7 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
         for name, output in rejector.last_outputs.items():
             flags.setdefault(name, []).append(np.nan_to_num(output.prob, nan=0.0) >= 0.5)
         flags.setdefault("fused", []).append(rejector.last_fused >= config.tracking.dynamic_threshold)
-        for revised in system.revised_keyframe_masks:     # a person there turned out to stand still
-            keyframe_masks[revised.frame_index] = (mask_to_png(revised.mask), keyframe_masks[revised.frame_index][1])
+        _revise(keyframe_masks, system.revised_keyframe_masks)   # a person there turned out to stand still
         if out.is_keyframe:
             _count_masks(masks, rejector.last_outputs, frame.dynamic_mask)
             fused = system.last_dynamic_mask
@@ -163,16 +162,8 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
             keyframe_masks[frame.index] = (mask_to_png(fused), frame.dynamic_mask.astype(bool))
         if observer is not None:
             observer(frame, out, system)
-    for revised in system.finish_keyframe_masks():
-        keyframe_masks[revised.frame_index] = (mask_to_png(revised.mask), keyframe_masks[revised.frame_index][1])
-    for index, (png, truth_mask) in keyframe_masks.items():   # what masks/ holds at the end of the run
-        fused = png.astype(np.float32) / 255.0
-        masks.setdefault("fused", PixelCounts()).add(fused, truth_mask)
-        if split is not None:
-            label, region_of = split
-            region = region_of(index)
-            masks.setdefault(f"fused, {label}", PixelCounts()).add(np.where(region, fused, 0), truth_mask & region)
-            masks.setdefault(f"fused, not {label}", PixelCounts()).add(np.where(region, 0, fused), truth_mask & ~region)
+    _revise(keyframe_masks, system.finish_keyframe_masks())
+    _count_final_masks(masks, keyframe_masks, split)
     keep = np.concatenate(keeps)
     truth = np.concatenate(truths)[keep]
     scores.features, scores.dynamic_features = len(truth), int(truth.sum())
@@ -187,6 +178,26 @@ def evaluate_synthetic(sequence: SyntheticSequence, config: SlamConfig, boundary
                                  [int(i) for i in np.flatnonzero(~tracked)], system.num_keyframes,
                                  {i: png for i, (png, _) in keyframe_masks.items()})
     return evaluation
+
+
+def _revise(keyframe_masks: dict[int, tuple[np.ndarray, np.ndarray]], revised) -> None:
+    """Replace the 8-bit fused mask of each revised keyframe (``RevisedMask``), keeping its exact mask."""
+    for mask in revised:
+        keyframe_masks[mask.frame_index] = (mask_to_png(mask.mask), keyframe_masks[mask.frame_index][1])
+
+
+def _count_final_masks(counts: dict[str, PixelCounts], keyframe_masks: dict[int, tuple[np.ndarray, np.ndarray]],
+                       split: Optional[tuple[str, Callable[[int], np.ndarray]]]) -> None:
+    """The fused keyframe masks as ``masks/`` holds them at the end of the run, against the exact masks; with
+    ``split`` also inside and outside its region (see ``evaluate_synthetic``)."""
+    for index, (png, truth) in keyframe_masks.items():
+        fused = png.astype(np.float32) / 255.0
+        counts.setdefault("fused", PixelCounts()).add(fused, truth)
+        if split is not None:
+            label, region_of = split
+            region = region_of(index)
+            counts.setdefault(f"fused, {label}", PixelCounts()).add(np.where(region, fused, 0), truth & region)
+            counts.setdefault(f"fused, not {label}", PixelCounts()).add(np.where(region, 0, fused), truth & ~region)
 
 
 def _count_masks(counts: dict[str, PixelCounts], outputs, truth: np.ndarray) -> None:
