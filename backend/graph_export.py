@@ -118,9 +118,9 @@ def information_from_sigmas(sigma_t: float, sigma_r_deg: float, scale: float = 1
 
 
 def information_to_g2o(information: np.ndarray) -> np.ndarray:
-    """Rotation-first information -> g2o's translation-first order."""
+    """Rotation-first information -> g2o's translation-first order; one 6x6 matrix or a stack (..., 6, 6)."""
     info = np.asarray(information, dtype=float)
-    return info[np.ix_(_G2O_FROM_GTSAM, _G2O_FROM_GTSAM)]
+    return info[..., _G2O_FROM_GTSAM, :][..., _G2O_FROM_GTSAM]
 
 
 def information_from_g2o(information_g2o: np.ndarray) -> np.ndarray:
@@ -190,8 +190,7 @@ def format_g2o(kf_ids, poses, edges: Sequence[GraphEdge]) -> str:
     for k, values in zip(ids, np.hstack([t, q]).tolist()):
         lines.append(" ".join(["VERTEX_SE3:QUAT", str(k), *map(repr, values)]))
     if edges:
-        info = np.array([np.asarray(e.information, dtype=float) for e in edges])
-        info = info[:, _G2O_FROM_GTSAM][:, :, _G2O_FROM_GTSAM]          # information_to_g2o of each
+        info = information_to_g2o([np.asarray(e.information, dtype=float) for e in edges])
         info = 0.5 * (info + np.swapaxes(info, 1, 2))
         iu = np.triu_indices(6)
         t, q = poses_to_tq([e.T_ab for e in edges])

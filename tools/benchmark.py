@@ -80,6 +80,7 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
     backend_ms = timer.per_frame("backend")
     keyframe_ms = backend_ms[backend_ms > 0]
     total_ms = timer.per_frame("total")
+    modules = [m for m in timer.modules() if m != "total"]
     return {
         "whole_run_ms_per_frame": 1e3 * whole_run_s / max(summary.frames, 1),
         "whole_run_s": whole_run_s,
@@ -88,8 +89,8 @@ def run_dynslam(sequence: Path, output: Path, config_files: list[str], overrides
         "latency_ms": {"median": float(np.median(total_ms)), "p95": float(np.percentile(total_ms, 95))},
         "cost_trend": cost_trend(total_ms),
         # each module's wall and CPU ms per frame over the first and the last quarter: what made the step climb
-        "module_trend": {m: cost_trend(timer.per_frame(m)) for m in timer.modules() if m != "total"},
-        "module_cpu_trend": {m: cost_trend(timer.cpu_per_frame(m)) for m in timer.modules() if m != "total"},
+        "module_trend": {m: cost_trend(timer.per_frame(m)) for m in modules},
+        "module_cpu_trend": {m: cost_trend(timer.cpu_per_frame(m)) for m in modules},
         "backend_ms_at_keyframes": backend_cost_at_marks(keyframe_ms),
         # the mapping back end's own CPU per keyframe update (in the worker process by default)
         "mapping_update_cpu_ms": [float(x) for x in pipeline.system.mapper.graph.update_cpu_ms],
