@@ -85,7 +85,7 @@ def _long_report(first_ms: float, last_ms: float) -> dict:
 
 
 def test_long_run_table_compares_the_first_and_last_block(capsys):
-    text = benchmark.long_run_table(_long_report(66.2, 45.4))
+    text = benchmark.long_run_table(_long_report(66.2, 45.4), benchmark.TARGETS["long_run_ratio"])
     assert "| 1–1000 | 66.2 | 200 (200) | 350 |" in text and "| 4001–5000 | 45.4 | 399 (1) | 448 |" in text
     assert "last / first: **0.69** (target ≤ 1.25)" in text and "peak RSS 630 MiB" in text
     assert benchmark._check_targets([], _long_report(66.2, 45.4)) == 0
@@ -104,7 +104,7 @@ def test_long_run_runs_the_memory_tool_in_its_own_process(tmp_path):
     report = benchmark.run_long(40, tmp_path, block=15)
     assert report["frames"] == 40 and [(b["first"], b["last"]) for b in report["blocks"]] == [(1, 15), (16, 30), (31, 40)]
     assert (tmp_path / "long_run.json").is_file()
-    assert "last / first" in benchmark.long_run_table(report)
+    assert "last / first" in benchmark.long_run_table(report, benchmark.TARGETS["long_run_ratio"])
 
 
 def test_method_line_lists_every_dynamic_method_slowest_first():
