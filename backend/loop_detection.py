@@ -20,8 +20,8 @@ of ``ComputeSim3`` (RGB-D: scale is known, so an SE(3) PnP against the map repla
    (one keyframe with a lucky BoW score is not enough; a real revisit keeps matching).
 4. **Geometric verification (static features only).** The keyframe's static descriptors are matched
    (``backend.pnp_verification``: Hamming, Lowe ratio 0.75, one keypoint per landmark) to the good landmarks
-   observed by the candidate and its covisible neighbours; ``cv2.solvePnPRansac`` (seeded with
-   ``cv2.setRNGSeed``) on world landmark positions vs. the keyframe's undistorted pixels
+   observed by the candidate and its covisible neighbours; ``cv2.solvePnPRansac`` (the same
+   samples in every run: OpenCV's RANSAC draws from a generator fixed inside the call) on world landmark positions vs. the keyframe's undistorted pixels
    (``camera.K``, no distortion) gives a pose that is refined with ``SOLVEPNP_ITERATIVE`` on the
    inliers. Inliers whose predicted depth disagrees with the measured depth by more than
    ``depth_tolerance`` (relative) are dropped: an RGB-D camera measures that depth, and a repeated

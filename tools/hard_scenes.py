@@ -17,7 +17,8 @@ frame measured no depth ("fused, real depth missing": the composite draws people
 holds, a black monitor screen included) and everywhere else ("fused, not real depth missing").
 
 ``--repeats N`` runs the clean path and every scene N times, with seeds 0..N-1 for every random choice
-(``slam.run.run_config.seeded``: RANSAC, k-means seeding, depth_sdf's pairs; the scene itself stays the
+(``slam.run.run_config.seeded``: cpr's k-means seeding and depth_sdf's pairs; OpenCV's RANSAC draws the same at
+every seed; the scene itself stays the
 same), and reports each seed's ATE over the clean run's at the same seed, and their median, and each
 seed's keyframe-mask precision / recall: the ratio of a
 scene where people cover most of the view moves by +-0.2 with the seed alone (three_close, seeds 0-4: 1.49,

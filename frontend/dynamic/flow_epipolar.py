@@ -5,7 +5,8 @@ Algorithm 1 (precise dynamic region search), per frame:
 1. The previous frame's ORB keypoints (raw pixel coordinates) are tracked into the current grey image
    with pyramidal Lucas-Kanade (``cv2.calcOpticalFlowPyrLK``).
 2. A fundamental matrix is fitted to the tracked pairs with RANSAC (``cv2.findFundamentalMat``,
-   ``FM_RANSAC``, seeded with ``cv2.setRNGSeed(cfg.seed)``) and refitted by the normalised 8-point
+   ``FM_RANSAC``, which draws from a generator fixed inside the call: the same samples every run and
+   whatever ``cfg.seed``, see ``fundamental``) and refitted by the normalised 8-point
    method on the RANSAC inliers ("RANSAC removes the flow vectors that deviate from the motion model
    ... for the subsequent calculation of a more precise fundamental matrix").
 3. A tracked point is dynamic when its distance to the epipolar line of its previous position is
@@ -184,7 +185,9 @@ class FlowEpipolarMethod:
         return image
 
     def fundamental(self, x0: np.ndarray, x1: np.ndarray) -> Optional[np.ndarray]:
-        """RANSAC F (seeded), refitted by the normalised 8-point method on its inliers; None if degenerate."""
+        """RANSAC F, refitted by the normalised 8-point method on its inliers; None if degenerate. OpenCV's RANSAC
+        does not read the generator ``cv2.setRNGSeed`` sets (its own has a fixed state), so ``cfg.seed`` does not
+        change the fit; it is set anyway for any OpenCV version whose RANSAC would draw from it."""
         if len(x0) < max(int(self.cfg.min_tracks), 8):
             return None
         cv2.setRNGSeed(int(self.cfg.seed))

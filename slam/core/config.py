@@ -59,7 +59,7 @@ class SlamConfig(ConfigSection):
     dynamic: DynamicConfig = Field(default_factory=DynamicConfig)
     loop: LoopConfig = Field(default_factory=LoopConfig)
     export: MapExportConfig = Field(default_factory=MapExportConfig)
-    seed: int = Field(0, ge=0, le=2**32 - 1)   # numpy's and OpenCV's seeds are 32-bit
+    seed: int = Field(0, ge=0, le=2**32 - 1)   # numpy's and OpenCV's seeds are 32-bit (OpenCV's RANSAC ignores it)
     max_association_dt: float = Field(0.02, gt=0)
     """Largest time difference (s) between an RGB and a depth image paired into one frame."""
 

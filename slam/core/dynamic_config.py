@@ -178,6 +178,8 @@ class FlowEpipolarConfig(ConfigSection):
     remove_threshold: float = Field(0.5, **_UNIT)
     detector_score: float = Field(0.6, **_UNIT)
     seed: int = Field(0, ge=0)
+    """Given to ``cv2.setRNGSeed`` before F's RANSAC; OpenCV 4 and 5 draw RANSAC's samples from a generator of
+    their own with a fixed state, so today it changes nothing (the fit is the same in every run)."""
     # Not in the paper (see frontend/dynamic/flow_epipolar.py): LK window/levels, forward-backward
     # check (px, 0 = off), RANSAC threshold for F, minimum tracks, F from points outside the boxes,
     # grid prior without history, posterior clamp [c, 1 - c] so that cells never freeze at 0 or 1.

@@ -64,9 +64,11 @@ def resolve_run_config(dataset_path: Optional[Path], config_files: Sequence[str]
 
 
 def seeded(config: SlamConfig, seed: int) -> SlamConfig:
-    """``config`` with every random choice drawn from ``seed``: RANSAC's (OpenCV's generator) and each
-    dynamic method's (cpr's k-means seeding, depth_sdf's pairs, flow_epipolar's F). Runs that differ only
-    here show how much a result owes to those draws (``tools/sweep.py --repeats``, ``tools/hard_scenes.py
+    """``config`` with every seed set to ``seed``: the run's (``seed``) and each dynamic method's. What a seed
+    moves: cpr's k-means seeding and depth_sdf's pairs. OpenCV's RANSAC (tracking's and relocalization's PnP,
+    flow_epipolar's F, box_depth's homography) draws from a generator fixed inside each call, whatever
+    ``cv2.setRNGSeed`` was given, so it makes the same choices at every seed: runs that differ only here show
+    how much a result owes to the two draws above, not to RANSAC's (``tools/sweep.py --repeats``, ``tools/hard_scenes.py
     --repeats``, the hard-scene test's median of three)."""
     from slam.core.dynamic_config import METHOD_NAMES
 
