@@ -6,7 +6,8 @@ the camera pose that explains them:
 1. ``cv2.BFMatcher`` Hamming kNN, Lowe ratio, a maximum descriptor distance, one feature per landmark
    (the closest descriptor wins);
 2. ``cv2.solvePnPRansac`` (EPnP; its samples come from a generator fixed inside the call, so the result
-   does not depend on what else drew from OpenCV's, nor on ``seed``) on world landmark positions vs. undistorted pixels (``K``, no distortion), then
+   does not depend on what else drew from OpenCV's, nor on ``seed``) on world landmark positions vs.
+   undistorted pixels (``K``, no distortion), then
    ``SOLVEPNP_ITERATIVE`` refinement on the inliers;
 3. inliers must lie in front of the camera, reproject within the threshold and, where the feature
    has a measured depth, agree with it to ``depth_tolerance`` (relative): an RGB-D camera measures
