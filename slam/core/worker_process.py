@@ -11,6 +11,7 @@ complete files), stops when its pipe closes, and is a daemon, so no process outl
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import signal
 import sys
 from contextlib import contextmanager
@@ -36,6 +37,23 @@ def _main_module_hidden():
         main.__dict__.update(saved)
 
 
+@contextmanager
+def _one_blas_thread():
+    """OpenBLAS on one thread in the server the workers fork from (it reads the variable when the server
+    imports numpy and SciPy; this process's own BLAS is loaded already and keeps its threads). A worker solves
+    while the tracking threads keep both cores busy, and OpenBLAS's second thread waits for a core by
+    spinning: a Cholesky of a 408 x 408 camera system (fr1/rpy-400's final adjustment) took 17 ms on two
+    threads on a busy machine against 2 ms on one. Left as it is when the user set it."""
+    if "OPENBLAS_NUM_THREADS" in os.environ:
+        yield
+        return
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    try:
+        yield
+    finally:
+        del os.environ["OPENBLAS_NUM_THREADS"]
+
+
 def start_worker(target: Callable, args: tuple, name: str):
     """Start ``target(*args, conn)`` in a daemon process named ``name`` (<= 15 characters: Linux's
     process name); returns (process, this side's connection). ``target`` must call ``worker_started(name)``
@@ -50,7 +68,7 @@ def start_worker(target: Callable, args: tuple, name: str):
     # (a Ctrl-C in between is delivered then, not lost).
     blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        with _main_module_hidden():
+        with _main_module_hidden(), _one_blas_thread():
             process.start()
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
