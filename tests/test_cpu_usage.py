@@ -1,6 +1,7 @@
 """tools/cpu_usage.py: the benchmark's CPU time by thread and process, read from /proc while a run goes."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import threading
@@ -70,3 +71,29 @@ def test_the_mapping_worker_is_counted_by_its_own_name_not_the_fork_servers():
         assert cpu_usage._process_name(int(server)) == "fork server"
     finally:
         graph.close()
+
+
+def test_the_mapping_worker_runs_openblas_on_one_thread_and_this_process_keeps_its_setting(monkeypatch):
+    """The worker solves while the tracking threads hold both cores; OpenBLAS's second thread would spin for a
+    core (docs/design.md, "Runtime"). The server the worker forks from starts with one BLAS thread; this
+    process's environment is left as it was, and a user's own setting is kept (``_one_blas_thread``)."""
+    from slam.core.config import BackendConfig
+    from slam.core.worker_process import _one_blas_thread
+    from slam.runtime.graph_process import GraphProcess, GraphSpec
+    from conftest import RING_CALIBRATION
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    graph = GraphProcess(GraphSpec(BackendConfig(), RING_CALIBRATION))
+    try:
+        environ = Path(f"/proc/{graph._process.pid}/environ").read_bytes().split(b"\0")
+        assert b"OPENBLAS_NUM_THREADS=1" in environ
+        assert "OPENBLAS_NUM_THREADS" not in os.environ
+    finally:
+        graph.close()
+    with _one_blas_thread():
+        assert os.environ["OPENBLAS_NUM_THREADS"] == "1"
+    assert "OPENBLAS_NUM_THREADS" not in os.environ
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
+    with _one_blas_thread():
+        assert os.environ["OPENBLAS_NUM_THREADS"] == "4"
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "4"
